@@ -1,0 +1,226 @@
+"""Uniform helical equilibria: every register of the helix of curvature kappa, torsion tau.
+
+Conventions (DESIGN.md): $u = (\\kappa\\sin\\varphi, \\kappa\\cos\\varphi, \\tau)$ in the director
+frame, $m = K(u - \\hat u)$, and a uniform helix is an equilibrium iff $n = \\mu_2 u$,
+$m = \\mu_1 u + \\mu_2 e_3$ (reference report, eqs. 70-79).  The register condition
+$h = m_1 u_2 - m_2 u_1 = \\kappa (A \\sin 2\\varphi + B \\sin\\varphi + C\\cos\\varphi)$ with
+$A = (K_1 - K_2)\\kappa/2$, $B = K_2\\hat u_2 + K_{23}(\\hat u_3 - \\tau)$,
+$C = K_{13}(\\tau - \\hat u_3) - K_1 \\hat u_1$ is solved by `helixrod._roots`.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from ._roots import NUM_SLOTS, register_roots
+from ._rod import Rod
+
+
+class HelixEquilibria(eqx.Module):
+    """All uniform helical equilibria at given $(\\kappa, \\tau)$.
+
+    Per-register fields have shape `batch + (4,)` (vectors `batch + (4, 3)`), where
+    `batch = broadcast(kappa, tau, rod batch)`.  Slots: 0 the global minimum of the energy
+    on the constraint circle (always stable), 1 the global maximum, 2 and 3 the local
+    minimum and maximum of the inner pair when it exists.  `valid` marks the slots in use;
+    every field is NaN in unused slots.
+
+    Fields: `phi` register in $[0, 2\\pi)$; `u`, `m`, `n` twist, moment and force in the
+    director frame; `force` $F = n\\cdot a$ and `moment` $M = m\\cdot a$ along the helix axis
+    $a = u/|u|$ (for $\\tau > 0$, $F > 0$ pulls); `tension` $n_3$; `energy` $W(u)$;
+    `d2energy` $d^2W/d\\varphi^2$ on the circle; `stable` ($d^2W/d\\varphi^2 > 0$); the
+    multipliers `mu1`, `mu2`; first integrals `I1` $= |n|^2$ and `I2` $= m\\cdot n$;
+    `tangent` (a double register, reported once, with $d^2W/d\\varphi^2 = 0$, not stable).
+
+    Per-point fields (shape `batch`): `continuum` -- $W$ is constant on the circle (the
+    fully isotropic rod, or $K_1 = K_2$ at a $\\tau$ where $B = C = 0$): every register is an
+    equilibrium with the same axial force, moment and energy; slot 0 holds $\\varphi = 0$ as
+    the representative, and no register is called stable (the family is neutral).
+    `straight` -- $\\kappa = 0$: no register is defined, every slot is invalid; see
+    `straight_family` and the $1/\\kappa$ divergence of the wrench of a curved rod.
+    """
+
+    phi: Float[Array, "*batch 4"]
+    valid: Bool[Array, "*batch 4"]
+    u: Float[Array, "*batch 4 3"]
+    m: Float[Array, "*batch 4 3"]
+    n: Float[Array, "*batch 4 3"]
+    force: Float[Array, "*batch 4"]
+    moment: Float[Array, "*batch 4"]
+    tension: Float[Array, "*batch 4"]
+    energy: Float[Array, "*batch 4"]
+    d2energy: Float[Array, "*batch 4"]
+    stable: Bool[Array, "*batch 4"]
+    mu1: Float[Array, "*batch 4"]
+    mu2: Float[Array, "*batch 4"]
+    I1: Float[Array, "*batch 4"]
+    I2: Float[Array, "*batch 4"]
+    tangent: Bool[Array, "*batch 4"]
+    continuum: Bool[Array, "*batch"]
+    straight: Bool[Array, "*batch"]
+
+    @property
+    def count(self) -> Array:
+        """Number of valid registers per point (2, 3 or 4; 1 for a continuum, 0 if straight)."""
+        return jnp.sum(self.valid, axis=-1)
+
+
+def register_coefficients(rod: Rod, kappa: ArrayLike, tau: ArrayLike):
+    """The coefficients $(A, B, C)$ of $h/\\kappa = A\\sin 2\\varphi + B\\sin\\varphi + C\\cos\\varphi$."""
+    kappa, tau = jnp.asarray(kappa), jnp.asarray(tau)
+    uh = rod.uhat
+    A = 0.5 * (rod.K1 - rod.K2) * kappa
+    B = rod.K2 * uh[..., 1] + rod.K23 * (uh[..., 2] - tau)
+    C = rod.K13 * (tau - uh[..., 2]) - rod.K1 * uh[..., 0]
+    return jnp.broadcast_arrays(A, B, C)
+
+
+def _moment(rod: Rod, u):
+    """m = K (u - uhat) for u of shape batch + (4, 3) and a rod of batch shape."""
+    K1, K2, K3, K13, K23 = (k[..., None] for k in (rod.K1, rod.K2, rod.K3, rod.K13, rod.K23))
+    v = u - rod.uhat[..., None, :]
+    v1, v2, v3 = v[..., 0], v[..., 1], v[..., 2]
+    return jnp.stack([K1 * v1 + K13 * v3, K2 * v2 + K23 * v3, K13 * v1 + K23 * v2 + K3 * v3], -1), v
+
+
+def _check_inputs(kappa, tau):
+    for name, x in (("kappa", kappa), ("tau", tau)):
+        if not jnp.issubdtype(jnp.result_type(x), jnp.number) or jnp.iscomplexobj(x):
+            raise ValueError(f"{name} must be real numbers, got dtype {jnp.result_type(x)}")
+    try:
+        return jnp.broadcast_shapes(jnp.shape(kappa), jnp.shape(tau))
+    except ValueError:
+        raise ValueError(
+            f"kappa and tau do not broadcast: shapes {jnp.shape(kappa)} and {jnp.shape(tau)}"
+        ) from None
+
+
+def helix_equilibria(rod: Rod, kappa: ArrayLike, tau: ArrayLike) -> HelixEquilibria:
+    """Every uniform helical equilibrium of curvature `kappa` and torsion `tau`.
+
+    `kappa` ($\\ge 0$) and `tau` broadcast against each other and against the rod's batch
+    shape; units are those of the rod's twists (1/length).  Pure, and safe under
+    `jax.jit`, `jax.vmap` and `jax.grad`: register derivatives come from the implicit
+    function theorem, and gradients stay finite wherever values are finite.
+
+    Points that cannot have a helix are flagged, never raised on, so that one bad point
+    does not spoil a batch: `kappa < 0` or non-finite inputs give `valid = False` in every
+    slot; `kappa = 0` sets `straight`.
+
+    **Example**
+
+    ```python
+    rod = helixrod.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
+    eq = helixrod.helix_equilibria(rod, 0.5, 1.5)
+    eq.phi[eq.valid], eq.force[eq.valid], eq.stable[eq.valid]
+    ```
+    """
+    _check_inputs(kappa, tau)
+    dtype = jnp.result_type(float)
+    kappa = jnp.asarray(kappa, dtype)
+    tau = jnp.asarray(tau, dtype)
+    A, B, C = register_coefficients(rod, kappa, tau)
+    kappa, tau = jnp.broadcast_arrays(kappa, tau, A)[:2]
+    good = jnp.isfinite(kappa) & jnp.isfinite(tau) & (kappa >= 0)
+    straight = good & (kappa == 0)
+    helical = good & (kappa > 0)
+    # Outside the domain solve a harmless problem and mask it.
+    A = jnp.where(helical, A, 1.0)
+    B = jnp.where(helical, B, 0.0)
+    C = jnp.where(helical, C, 0.0)
+    phi, cos_phi, sin_phi, valid, continuum, tangent = register_roots(A, B, C)
+    valid = valid & helical[..., None]
+    continuum = continuum & helical
+
+    k = jnp.where(helical, kappa, 1.0)[..., None]
+    t = jnp.broadcast_to(tau[..., None], cos_phi.shape)
+    u = jnp.stack([k * sin_phi, k * cos_phi, t], axis=-1)
+    m, v = _moment(rod, u)
+    mu1 = (m[..., 0] * u[..., 0] + m[..., 1] * u[..., 1]) / (k * k)
+    mu2 = m[..., 2] - mu1 * t
+    n = mu2[..., None] * u
+    norm_u = jnp.sqrt(k * k + t * t)
+    force = mu2 * norm_u
+    moment = mu1 * norm_u + mu2 * t / norm_u
+    energy = 0.5 * jnp.sum(v * m, axis=-1)
+    cos2 = cos_phi * cos_phi - sin_phi * sin_phi
+    d2energy = k * (2 * A[..., None] * cos2 + B[..., None] * cos_phi - C[..., None] * sin_phi)
+    d2energy = jnp.where(tangent, 0.0, d2energy)
+    stable = valid & ~tangent & ~continuum[..., None] & (d2energy > 0)
+
+    def masked(x):
+        mask = valid.reshape(valid.shape + (1,) * (x.ndim - valid.ndim))
+        return jnp.where(mask, x, jnp.nan)
+
+    return HelixEquilibria(
+        phi=masked(phi),
+        valid=valid,
+        u=masked(u),
+        m=masked(m),
+        n=masked(n),
+        force=masked(force),
+        moment=masked(moment),
+        tension=masked(n[..., 2]),
+        energy=masked(energy),
+        d2energy=masked(d2energy),
+        stable=stable,
+        mu1=masked(mu1),
+        mu2=masked(mu2),
+        I1=masked(jnp.sum(n * n, axis=-1)),
+        I2=masked(jnp.sum(m * n, axis=-1)),
+        tangent=tangent & valid,
+        continuum=continuum,
+        straight=straight,
+    )
+
+
+def helix_residual(rod: Rod, u: ArrayLike, n: ArrayLike) -> Float[Array, "... 6"]:
+    """The six balance equations of a uniform helix, zero at an equilibrium.
+
+    With constant local components the static Kirchhoff equations
+    $n' + u\\times n = 0$, $m' + u\\times m + e_3\\times n = 0$ reduce to
+    $(u \\times n,\\; u\\times m + e_3 \\times n)$ with $m = K(u - \\hat u)$ (eqs. 70a-f of the
+    reference report).  `u`, `n` have a trailing axis of 3; the result a trailing 6.
+    """
+    u = jnp.asarray(u)
+    n = jnp.asarray(n)
+    if u.shape[-1:] != (3,) or n.shape[-1:] != (3,):
+        raise ValueError(f"u and n need a trailing axis of 3, got shapes {u.shape} and {n.shape}")
+    m = rod.moment(u)
+    e3_cross_n = jnp.stack([-n[..., 1], n[..., 0], jnp.zeros_like(n[..., 2])], axis=-1)
+    return jnp.concatenate([jnp.cross(u, n), jnp.cross(u, m) + e3_cross_n], axis=-1)
+
+
+def straight_family(rod: Rod, tension: ArrayLike):
+    """The straight, untwisted exceptional family $u = 0$ (reference report, section 3.5).
+
+    The rod is held straight by the constant moment $m = -K\\hat u$ and any axial tension.
+    Returns `(u, m, n)` in the director frame with `n = (0, 0, tension)`.
+    """
+    tension = jnp.asarray(tension, jnp.result_type(float))
+    zero = jnp.zeros_like(tension)
+    u = jnp.zeros(tension.shape + (3,), tension.dtype) + jnp.zeros_like(rod.uhat)
+    n = jnp.stack([zero, zero, tension], axis=-1) + jnp.zeros_like(u)
+    return u, rod.moment(u), n
+
+
+def pure_moment_family(rod: Rod, mu1: ArrayLike):
+    """The force-free exceptional family $n = 0$, $m = \\mu_1 u$ (reference report, 3.5).
+
+    $K(u - \\hat u) = \\mu_1 u$ gives $u = (K - \\mu_1 I)^{-1} K \\hat u$: helices bent and
+    twisted by a pure moment along their axis.  $\\mu_1 = 0$ is the unstressed shape
+    $u = \\hat u$.  Returns `(u, m, n)`; $\\mu_1$ at an eigenvalue of $K$ gives non-finite
+    values (the family passes through infinity there).
+    """
+    mu1 = jnp.asarray(mu1, jnp.result_type(float))
+    K = rod.K
+    shifted = K - mu1[..., None, None] * jnp.eye(3, dtype=K.dtype)
+    u = jnp.linalg.solve(shifted, (K @ rod.uhat[..., None]))[..., 0]
+    m = rod.moment(u)
+    return u, m, jnp.zeros_like(u)
+
+
+NUM_REGISTERS = NUM_SLOTS

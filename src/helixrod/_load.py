@@ -1,0 +1,152 @@
+"""The reverse question: which uniform helices does a given axial wrench hold?"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from ._equilibria import helix_equilibria
+from ._roots import NUM_SLOTS
+from ._rod import Rod
+
+
+class LoadedHelices(eqx.Module):
+    """Uniform helices held by one axial wrench; fixed size, padded, `valid` marks rows.
+
+    `kappa`, `tau`, `phi`, `slot` (the `helix_equilibria` slot: 0 global minimum of the
+    energy on the circle, ...), `force`, `moment` (as recomputed at the solution), `energy`,
+    `stable`; all NaN / False in unused rows.  `count` is the number of helices found.
+    """
+
+    kappa: Float[Array, " k"]
+    tau: Float[Array, " k"]
+    phi: Float[Array, " k"]
+    slot: Int[Array, " k"]
+    force: Float[Array, " k"]
+    moment: Float[Array, " k"]
+    energy: Float[Array, " k"]
+    stable: Bool[Array, " k"]
+    valid: Bool[Array, " k"]
+    count: Int[Array, ""]
+
+
+def _slot_wrench(rod, kappa, tau, slot):
+    eq = helix_equilibria(rod, kappa, tau)
+    return eq.force[..., slot], eq.moment[..., slot]
+
+
+def helices_under_load(
+    rod: Rod,
+    force: ArrayLike,
+    moment: ArrayLike,
+    *,
+    kappa_max: float,
+    tau_range: tuple[float, float],
+    grid: int = 64,
+    newton_steps: int = 25,
+    max_solutions: int = 16,
+    rtol: float = 1e-10,
+) -> LoadedHelices:
+    """All uniform helices with axial force `force` and axial moment `moment` inside the box
+    $0 < \\kappa \\le$ `kappa_max`, $\\tau \\in$ `tau_range` (the spring formula read backwards).
+
+    Method: every register branch of `helix_equilibria` is evaluated on a `grid` x `grid`
+    lattice of the box; each cell over which both $F - F_0$ and $M - M_0$ change sign on
+    one branch seeds a Newton solve of $(F, M)(\\kappa, \\tau) = (F_0, M_0)$ on that branch
+    (Jacobian by forward-mode autodiff through the register root), and converged,
+    distinct solutions are returned.  A solution is found reliably when the box contains
+    it and the lattice resolves it (two solutions on one branch closer than a cell can
+    merge: raise `grid`).  Scalar `force`, `moment`; `jax.vmap` for many.  jit-safe.
+    """
+    if grid < 2 or max_solutions < 1:
+        raise ValueError("grid must be >= 2 and max_solutions >= 1")
+    tau_lo, tau_hi = float(tau_range[0]), float(tau_range[1])
+    if not (kappa_max > 0 and tau_hi > tau_lo):
+        raise ValueError(f"need kappa_max > 0 and tau_range[1] > tau_range[0]; got {kappa_max}, {tau_range}")
+    dtype = jnp.result_type(float)
+    F0 = jnp.asarray(force, dtype)
+    M0 = jnp.asarray(moment, dtype)
+    if F0.ndim or M0.ndim:
+        raise ValueError("force and moment must be scalars (use jax.vmap for many)")
+    ks = jnp.linspace(kappa_max / grid, kappa_max, grid, dtype=dtype)
+    ts = jnp.linspace(tau_lo, tau_hi, grid, dtype=dtype)
+    eq = helix_equilibria(rod, ks[:, None], ts[None, :])
+    scale_f = jnp.maximum(jnp.abs(F0), jnp.nanmean(jnp.abs(eq.force)))
+    scale_m = jnp.maximum(jnp.abs(M0), jnp.nanmean(jnp.abs(eq.moment)))
+    rf = (eq.force - F0) / scale_f
+    rm = (eq.moment - M0) / scale_m
+
+    def corners(x):
+        return jnp.stack([x[:-1, :-1], x[1:, :-1], x[:-1, 1:], x[1:, 1:]], axis=0)
+
+    cf, cm = corners(rf), corners(rm)
+    both_valid = jnp.all(corners(eq.valid), axis=0)
+    straddle = (
+        (jnp.nanmin(cf, 0) <= 0) & (jnp.nanmax(cf, 0) >= 0) & (jnp.nanmin(cm, 0) <= 0) & (jnp.nanmax(cm, 0) >= 0)
+    )
+    candidate = (both_valid & straddle).reshape(-1)
+    n_candidates = 4 * max_solutions
+    (idx,) = jnp.nonzero(candidate, size=n_candidates, fill_value=-1)
+    used = idx >= 0
+    idx = jnp.where(used, idx, 0)
+    cells = grid - 1
+    i, rest = jnp.divmod(idx, cells * NUM_SLOTS)
+    j, slot = jnp.divmod(rest, NUM_SLOTS)
+    k0 = 0.5 * (ks[i] + ks[i + 1])
+    t0 = 0.5 * (ts[j] + ts[j + 1])
+
+    def solve_one(k, t, s):
+        def residual(x):
+            f, mo = _slot_wrench(rod, x[0], x[1], s)
+            return jnp.stack([(f - F0) / scale_f, (mo - M0) / scale_m])
+
+        def step(_, x):
+            r = residual(x)
+            J = jax.jacfwd(residual)(x)
+            dx = jnp.linalg.solve(J, r)
+            ok = jnp.all(jnp.isfinite(dx))
+            x_new = x - jnp.where(ok, dx, 0.0)
+            # Stay in the box (a step out of it keeps half the way to the wall).
+            x_new = jnp.stack(
+                [jnp.clip(x_new[0], 0.5 * x[0], kappa_max * 1.5), jnp.clip(x_new[1], tau_lo - (tau_hi - tau_lo), tau_hi + (tau_hi - tau_lo))]
+            )
+            return x_new
+
+        x = jax.lax.fori_loop(0, newton_steps, step, jnp.stack([k, t]))
+        r = residual(x)
+        return x, jnp.max(jnp.abs(r)) <= rtol
+
+    x, ok = jax.vmap(solve_one)(k0, t0, slot)
+    inside = (x[:, 0] > 0) & (x[:, 0] <= kappa_max * (1 + 1e-12)) & (x[:, 1] >= tau_lo) & (x[:, 1] <= tau_hi)
+    good = used & ok & inside
+    # Drop duplicates: the same slot at the same (kappa, tau) found from several cells.
+    scale_x = jnp.array([kappa_max, tau_hi - tau_lo], dtype)
+    close = jnp.all(jnp.abs((x[:, None, :] - x[None, :, :]) / scale_x) < 1e-7, axis=-1)
+    same = close & (slot[:, None] == slot[None, :]) & good[:, None] & good[None, :]
+    earlier = jnp.tril(same, k=-1)
+    good = good & ~jnp.any(earlier, axis=1)
+    (rows,) = jnp.nonzero(good, size=max_solutions, fill_value=-1)
+    valid = rows >= 0
+    rows = jnp.where(valid, rows, 0)
+    kk, tt, ss = x[rows, 0], x[rows, 1], slot[rows]
+    sol = helix_equilibria(rod, kk, tt)
+
+    def pick(field):
+        val = jnp.take_along_axis(field, ss[:, None], axis=1)[:, 0]
+        return val
+
+    nan = jnp.nan
+    return LoadedHelices(
+        kappa=jnp.where(valid, kk, nan),
+        tau=jnp.where(valid, tt, nan),
+        phi=jnp.where(valid, pick(sol.phi), nan),
+        slot=jnp.where(valid, ss, -1),
+        force=jnp.where(valid, pick(sol.force), nan),
+        moment=jnp.where(valid, pick(sol.moment), nan),
+        energy=jnp.where(valid, pick(sol.energy), nan),
+        stable=valid & pick(sol.stable),
+        valid=valid,
+        count=jnp.sum(valid),
+    )

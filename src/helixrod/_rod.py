@@ -1,0 +1,283 @@
+"""The elastic rod: a quadratic strain energy $W = \\tfrac12 (u-\\hat u)^T K (u-\\hat u)$."""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+
+def _is_concrete(*xs) -> bool:
+    return not any(isinstance(x, jax.core.Tracer) for x in xs)
+
+
+def _positive_definite(K1, K2, K3, K13, K23, uhat):
+    """Mask of rods whose stiffness is finite and positive definite, and ``uhat`` finite.
+
+    $K$ has a diagonal upper-left 2x2 block, so by the Schur complement it is positive
+    definite iff $K_1 > 0$, $K_2 > 0$ and $K_3 - K_{13}^2/K_1 - K_{23}^2/K_2 > 0$.
+    """
+    xp = np if _is_concrete(K1, K2, K3, K13, K23, uhat) else jnp
+    finite = (
+        xp.isfinite(K1)
+        & xp.isfinite(K2)
+        & xp.isfinite(K3)
+        & xp.isfinite(K13)
+        & xp.isfinite(K23)
+        & xp.all(xp.isfinite(uhat), axis=-1)
+    )
+    safe1 = xp.where(K1 > 0, K1, 1.0)
+    safe2 = xp.where(K2 > 0, K2, 1.0)
+    schur = K3 - K13**2 / safe1 - K23**2 / safe2
+    return finite & (K1 > 0) & (K2 > 0) & (schur > 0)
+
+
+class Rod(eqx.Module):
+    """An inextensible, unshearable elastic rod with quadratic strain energy.
+
+    $$W(u) = \\tfrac12 (u - \\hat u)^T K (u - \\hat u), \\qquad m = K(u - \\hat u),$$
+
+    $$K = \\begin{pmatrix} K_1 & 0 & K_{13} \\\\ 0 & K_2 & K_{23} \\\\
+    K_{13} & K_{23} & K_3 \\end{pmatrix}.$$
+
+    `K1`, `K2` are the bending stiffnesses about the directors $d_1$, $d_2$ (the
+    convention is $K_1 \\le K_2$: $d_1$ is the softer axis), `K3` the torsional stiffness,
+    `K13`, `K23` the bend-twist couplings and `uhat` the intrinsic (unstressed) twist
+    vector in the director frame.  Units are free but must be consistent: with
+    stiffness in [force x length^2], twists in [1/length], moments come out in
+    [force x length].
+
+    Every field may carry leading batch dimensions (all of the same shape; `uhat` adds
+    a trailing 3), so a batch of rods is itself a `Rod` and can be `jax.vmap`-ed over.
+
+    A non-finite or non-positive-definite stiffness raises `ValueError` when the values
+    are concrete, and an `equinox` runtime error (`eqx.error_if`) when they are traced.
+    $K_1 > K_2$ is allowed (nothing in helixrod needs the canonical order), and
+    `Rod.canonical()` returns the equivalent rod with $K_1 \\le K_2$.
+
+    **Example**
+
+    ```python
+    rod = helixrod.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
+    rod.energy(jnp.array([0.3, 0.2, 1.5]))
+    ```
+    """
+
+    K1: Float[Array, "*batch"]
+    K2: Float[Array, "*batch"]
+    K3: Float[Array, "*batch"]
+    K13: Float[Array, "*batch"]
+    K23: Float[Array, "*batch"]
+    uhat: Float[Array, "*batch 3"]
+
+    def __init__(
+        self,
+        K1: ArrayLike,
+        K2: ArrayLike,
+        K3: ArrayLike,
+        K13: ArrayLike = 0.0,
+        K23: ArrayLike = 0.0,
+        uhat: ArrayLike = (0.0, 0.0, 0.0),
+    ):
+        dtype = jnp.result_type(float)
+        K1, K2, K3, K13, K23 = (jnp.asarray(k, dtype=dtype) for k in (K1, K2, K3, K13, K23))
+        uhat = jnp.asarray(uhat, dtype=dtype)
+        if uhat.ndim == 0 or uhat.shape[-1] != 3:
+            raise ValueError(f"Rod: uhat must have a trailing axis of length 3, got shape {uhat.shape}")
+        shapes = {k.shape for k in (K1, K2, K3, K13, K23)}
+        shapes.add(uhat.shape[:-1])
+        try:
+            batch = jnp.broadcast_shapes(*shapes)
+        except ValueError:
+            raise ValueError(f"Rod: stiffness and uhat batch shapes do not broadcast: {sorted(shapes)}") from None
+        K1, K2, K3, K13, K23 = (jnp.broadcast_to(k, batch) for k in (K1, K2, K3, K13, K23))
+        uhat = jnp.broadcast_to(uhat, batch + (3,))
+        ok = _positive_definite(K1, K2, K3, K13, K23, uhat)
+        message = (
+            "Rod: stiffness must be finite and positive definite "
+            "(K1 > 0, K2 > 0, K3 - K13**2/K1 - K23**2/K2 > 0) and uhat finite"
+        )
+        if _is_concrete(K1, K2, K3, K13, K23, uhat):
+            bad = ~np.asarray(ok)
+            if bad.any():
+                where = "" if bad.ndim == 0 else f" (bad entries at batch indices {np.argwhere(bad)[:5].tolist()})"
+                raise ValueError(
+                    message
+                    + where
+                    + f"; got K1={np.asarray(K1)}, K2={np.asarray(K2)}, K3={np.asarray(K3)}, "
+                    f"K13={np.asarray(K13)}, K23={np.asarray(K23)}, uhat={np.asarray(uhat)}"
+                )
+        else:
+            K1 = eqx.error_if(K1, ~ok, message)
+        self.K1, self.K2, self.K3, self.K13, self.K23, self.uhat = K1, K2, K3, K13, K23, uhat
+
+    # -- constitutive law ---------------------------------------------------------------
+    @property
+    def K(self) -> Float[Array, "*batch 3 3"]:
+        """The stiffness matrix, shape `batch + (3, 3)`."""
+        z = jnp.zeros_like(self.K1)
+        rows = (
+            jnp.stack([self.K1, z, self.K13], axis=-1),
+            jnp.stack([z, self.K2, self.K23], axis=-1),
+            jnp.stack([self.K13, self.K23, self.K3], axis=-1),
+        )
+        return jnp.stack(rows, axis=-2)
+
+    def moment(self, u: ArrayLike) -> Float[Array, "... 3"]:
+        """Contact moment $m = K(u - \\hat u)$ (local components); `u` has a trailing 3."""
+        u = jnp.asarray(u)
+        v = u - self.uhat
+        v1, v2, v3 = v[..., 0], v[..., 1], v[..., 2]
+        return jnp.stack(
+            [
+                self.K1 * v1 + self.K13 * v3,
+                self.K2 * v2 + self.K23 * v3,
+                self.K13 * v1 + self.K23 * v2 + self.K3 * v3,
+            ],
+            axis=-1,
+        )
+
+    def energy(self, u: ArrayLike) -> Float[Array, "..."]:
+        """Strain energy density $W(u) = \\tfrac12 (u-\\hat u)^T K (u-\\hat u)$."""
+        u = jnp.asarray(u)
+        return 0.5 * jnp.sum((u - self.uhat) * self.moment(u), axis=-1)
+
+    def twist(self, m: ArrayLike) -> Float[Array, "... 3"]:
+        """Inverse constitutive law: the twist vector $u = \\hat u + K^{-1} m$."""
+        m = jnp.asarray(m)
+        # Block elimination of the diagonal 2x2 block: exact and branch-free.
+        schur = self.K3 - self.K13**2 / self.K1 - self.K23**2 / self.K2
+        m1, m2, m3 = m[..., 0], m[..., 1], m[..., 2]
+        v3 = (m3 - self.K13 * m1 / self.K1 - self.K23 * m2 / self.K2) / schur
+        v1 = (m1 - self.K13 * v3) / self.K1
+        v2 = (m2 - self.K23 * v3) / self.K2
+        return self.uhat + jnp.stack([v1, v2, v3], axis=-1)
+
+    # -- equivalent forms ---------------------------------------------------------------
+    def canonical(self) -> "Rod":
+        """The same rod with $K_1 \\le K_2$.
+
+        Where $K_1 > K_2$ the frame is turned by $+\\pi/2$ about $d_3$
+        ($d_1' = d_2$, $d_2' = -d_1$): $K' $ has $(K_2, K_1, K_3, K_{23}, -K_{13})$,
+        $\\hat u' = (\\hat u_2, -\\hat u_1, \\hat u_3)$, and a register $\\varphi$ becomes
+        $\\varphi + \\pi/2$.  Rods already canonical are returned unchanged.
+        """
+        swap = self.K1 > self.K2
+        u1, u2, u3 = self.uhat[..., 0], self.uhat[..., 1], self.uhat[..., 2]
+        return Rod(
+            jnp.where(swap, self.K2, self.K1),
+            jnp.where(swap, self.K1, self.K2),
+            self.K3,
+            jnp.where(swap, self.K23, self.K13),
+            jnp.where(swap, -self.K13, self.K23),
+            jnp.stack([jnp.where(swap, u2, u1), jnp.where(swap, -u1, u2), u3], axis=-1),
+        )
+
+    def dimensionless(self) -> dict[str, Array]:
+        """Dimensionless stiffness ratios (reference report, section 1.6).
+
+        Returns `a = K2/K1` (asymmetry), `Gamma = K3/K1` (twist-to-bend ratio),
+        `k13 = K13/K1`, `k23 = K23/K1`.  Dividing every moment by $K_1$ (times a length
+        scale) leaves a rod with $K_1 = 1$: `rod.scaled(1/rod.K1)`.
+        """
+        return {
+            "a": self.K2 / self.K1,
+            "Gamma": self.K3 / self.K1,
+            "k13": self.K13 / self.K1,
+            "k23": self.K23 / self.K1,
+        }
+
+    def scaled(self, factor: ArrayLike) -> "Rod":
+        """The rod with every stiffness multiplied by `factor` (wrenches scale alike)."""
+        return Rod(
+            self.K1 * factor,
+            self.K2 * factor,
+            self.K3 * factor,
+            self.K13 * factor,
+            self.K23 * factor,
+            self.uhat,
+        )
+
+    # -- constructors from material and section data ------------------------------------
+    @classmethod
+    def from_section(
+        cls,
+        E: float,
+        I1: float,
+        I2: float,
+        J: float,
+        *,
+        G: float | None = None,
+        nu: float | None = None,
+        uhat: ArrayLike = (0.0, 0.0, 0.0),
+    ) -> "Rod":
+        """Rod of Young's modulus `E` and shear modulus `G` (or Poisson ratio `nu`,
+        $G = E / (2(1+\\nu))$), second moments `I1`, `I2` (about $d_1$, $d_2$) and
+        torsion constant `J`: $K_1 = E I_1$, $K_2 = E I_2$, $K_3 = G J$ (eq. 19 of the
+        reference report)."""
+        G = _shear_modulus(E, G, nu)
+        return cls(E * I1, E * I2, G * J, uhat=uhat)
+
+    @classmethod
+    def circular(
+        cls,
+        E: float,
+        radius: float,
+        *,
+        G: float | None = None,
+        nu: float | None = None,
+        uhat: ArrayLike = (0.0, 0.0, 0.0),
+    ) -> "Rod":
+        """Solid circular wire: $I_1 = I_2 = \\pi r^4/4$, $J = \\pi r^4/2$."""
+        inertia = math.pi * radius**4 / 4
+        return cls.from_section(E, inertia, inertia, 2 * inertia, G=G, nu=nu, uhat=uhat)
+
+    @classmethod
+    def elliptical(
+        cls,
+        E: float,
+        a: float,
+        b: float,
+        *,
+        G: float | None = None,
+        nu: float | None = None,
+        uhat: ArrayLike = (0.0, 0.0, 0.0),
+    ) -> "Rod":
+        """Solid elliptical section, semi-axis `a` along $d_1$ and `b` along $d_2$.
+
+        $I_1 = \\pi a b^3/4$, $I_2 = \\pi a^3 b/4$, and Saint-Venant's torsion constant
+        $J = \\pi a^3 b^3/(a^2 + b^2)$.  With $a \\ge b$ the rod is canonical ($K_1 \\le K_2$).
+        """
+        I1 = math.pi * a * b**3 / 4
+        I2 = math.pi * a**3 * b / 4
+        J = math.pi * a**3 * b**3 / (a**2 + b**2)
+        return cls.from_section(E, I1, I2, J, G=G, nu=nu, uhat=uhat)
+
+
+def _shear_modulus(E, G, nu):
+    if (G is None) == (nu is None):
+        raise ValueError("give exactly one of G (shear modulus) or nu (Poisson ratio)")
+    if G is None:
+        if not -1.0 < nu < 0.5:
+            raise ValueError(f"Poisson ratio nu must lie in (-1, 1/2), got {nu}")
+        return E / (2.0 * (1.0 + nu))
+    return G
+
+
+def section_scales(E: float, I1: float, area: float, density: float = 1.0) -> dict[str, float]:
+    """Natural scales of a rod (reference report, section 1.6, eqs. 25-27).
+
+    length $L = \\sqrt{I_1/A}$, time $T = \\sqrt{\\rho I_1 / (A E)}$, force $\\phi = A E$;
+    moments scale as $\\phi L$ and twists as $1/L$.
+    """
+    length = math.sqrt(I1 / area)
+    return {
+        "length": length,
+        "time": math.sqrt(density * I1 / (area * E)),
+        "force": area * E,
+        "moment": area * E * length,
+    }

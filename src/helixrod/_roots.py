@@ -178,8 +178,7 @@ def _solve(A, B, C, robust=False):
     # Inside the astroid |b|^(2/3) + |c|^(2/3) < (2a)^(2/3), in polynomial form.
     b2, c2, a2 = b * b, c * c, a * a
     astroid = (b2 + c2 - 4 * a2) ** 3 + 108 * a2 * b2 * c2
-    inner_pair = astroid < -_TANGENT_TOL
-    inner_tangent = jnp.abs(astroid) <= _TANGENT_TOL
+    near_astroid = jnp.abs(astroid) <= _TANGENT_TOL
 
     k_min = _quadrant(sb, -sc)
     k_max = _quadrant(-sb, sc)
@@ -206,6 +205,11 @@ def _solve(A, B, C, robust=False):
     p_star, _, d2p_star = _poly(t_star, Ak, Bk, Ck)
     p0, p1 = Ck, 4 * Bk
     s_edge = jnp.sign(p0)
+    # On the astroid itself (and near its cusps, where the polynomial test flattens out)
+    # the sign of f at the separator decides: opposite to the edges -> a resolved pair.
+    resolved = (p_star != 0) & (jnp.sign(p_star) == -s_edge)
+    inner_pair = (astroid < -_TANGENT_TOL) | (near_astroid & resolved)
+    inner_tangent = near_astroid & ~resolved
     # Near a tangency the pair straddles t_star at +-sqrt(-2 P / P''): start there.
     half_gap = jnp.sqrt(jnp.maximum(-2 * p_star / jnp.where(d2p_star == 0, 1.0, d2p_star), 0.0))
     t_lo, ok_lo = _bracketed_newton(

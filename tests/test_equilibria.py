@@ -1,0 +1,197 @@
+"""helix_equilibria against closed forms (Love's open-coiled spring), the balance
+equations, finite differences, and the hard corners."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import random_rods
+
+import helixrod as hr
+
+equilibria = jax.jit(hr.helix_equilibria)
+
+
+def love_isotropic(B, C, uhat3, radius, alpha):
+    """Axial force and moment of an isotropic, naturally straight-or-twisted wire bent into
+    a helix of radius r and pitch angle alpha, from the lab-frame (Frenet) balance
+    m' + t x n = 0 with m = B kappa b + C (tau - uhat3) t and n = F e_z (Love, art. 270-271):
+    F = (C (tau - uhat3) - B tau) cos(alpha) / r,  M = B kappa cos(alpha) + C (tau - uhat3) sin(alpha)."""
+    kappa = np.cos(alpha) ** 2 / radius
+    tau = np.sin(alpha) * np.cos(alpha) / radius
+    F = (C * (tau - uhat3) - B * tau) * np.cos(alpha) / radius
+    M = B * kappa * np.cos(alpha) + C * (tau - uhat3) * np.sin(alpha)
+    return kappa, tau, F, M
+
+
+def test_isotropic_matches_love():
+    B, C, uhat3 = 1.3, 0.9, 0.4
+    alpha = np.linspace(-1.4, 1.4, 15)
+    radius = np.linspace(0.3, 3.0, 15)
+    kappa, tau, F, M = love_isotropic(B, C, uhat3, radius, alpha)
+    eq = equilibria(hr.Rod(B, B, C, uhat=(0.0, 0.0, uhat3)), kappa, tau)
+    assert bool(jnp.all(eq.continuum))
+    np.testing.assert_allclose(eq.force[:, 0], F, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(eq.moment[:, 0], M, rtol=1e-12, atol=1e-13)
+
+
+def test_residual_zero_and_counts(rng):
+    kappa = jnp.asarray(rng.uniform(0.01, 4.0, 64))
+    tau = jnp.asarray(rng.uniform(-4.0, 4.0, 64))
+    for rod in random_rods(rng, 4):
+        eq = equilibria(rod, kappa, tau)
+        scale = 1 + jnp.nanmax(jnp.abs(eq.m)) + jnp.nanmax(jnp.abs(eq.n))
+        res = hr.helix_residual(rod, eq.u, eq.n)
+        assert float(jnp.nanmax(jnp.abs(res))) < 1e-12 * float(scale)
+        assert bool(jnp.all(eq.count >= 2))
+        # m = mu1 u + mu2 e3 and the first integrals
+        m_rebuilt = eq.mu1[..., None] * eq.u + eq.mu2[..., None] * jnp.array([0.0, 0.0, 1.0])
+        np.testing.assert_allclose(np.asarray(eq.m)[eq.valid], np.asarray(m_rebuilt)[eq.valid], atol=1e-12)
+        np.testing.assert_allclose(eq.I1, jnp.sum(eq.n**2, -1), rtol=1e-12)
+        # stable is the sign of d2W/dphi2, which matches a finite difference of W(phi)
+        h = 1e-4
+
+        def W(phi):
+            u = jnp.stack([kappa[:, None] * jnp.sin(phi), kappa[:, None] * jnp.cos(phi), jnp.broadcast_to(tau[:, None], phi.shape)], -1)
+            return rod.energy(u)
+
+        fd = (W(eq.phi + h) - 2 * W(eq.phi) + W(eq.phi - h)) / h**2
+        ok = eq.valid & (jnp.abs(eq.d2energy) > 1e-5)
+        np.testing.assert_allclose(np.asarray(fd)[ok], np.asarray(eq.d2energy)[ok], rtol=1e-5, atol=1e-6)
+        assert bool(jnp.all(eq.stable == (eq.valid & (eq.d2energy > 0))))
+
+
+def test_axial_force_definition(rng):
+    rod = random_rods(rng, 1)[0]
+    eq = equilibria(rod, 0.8, 1.1)
+    axis = eq.u / jnp.linalg.norm(eq.u, axis=-1, keepdims=True)
+    np.testing.assert_allclose(eq.force, jnp.sum(eq.n * axis, -1), rtol=1e-12)
+    np.testing.assert_allclose(eq.moment, jnp.sum(eq.m * axis, -1), rtol=1e-12)
+    np.testing.assert_allclose(eq.tension, eq.n[..., 2], rtol=1e-12)
+
+
+def test_shapes_broadcast():
+    rod = hr.Rod(1.0, 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
+    eq = hr.helix_equilibria(rod, jnp.ones((3, 1)), jnp.ones((1, 5)))
+    assert eq.phi.shape == (3, 5, 4) and eq.u.shape == (3, 5, 4, 3) and eq.continuum.shape == (3, 5)
+    with pytest.raises(ValueError, match="broadcast"):
+        hr.helix_equilibria(rod, jnp.ones(3), jnp.ones(4))
+
+
+def test_flags_bad_points_without_spoiling_batch():
+    rod = hr.Rod(1.0, 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
+    kappa = jnp.array([0.5, jnp.nan, -1.0, 0.0, 0.7])
+    eq = equilibria(rod, kappa, 1.0)
+    assert eq.count.tolist() == [int(eq.count[0]), 0, 0, 0, int(eq.count[4])]
+    assert bool(eq.straight[3]) and not bool(eq.straight[1])
+    good = hr.helix_equilibria(rod, jnp.array([0.5, 0.7]), 1.0)
+    np.testing.assert_array_equal(np.asarray(eq.force)[[0, 4]], np.asarray(good.force))
+
+
+def test_wrench_diverges_as_kappa_to_zero():
+    """An intrinsically curved rod cannot be held straight by a finite wrench."""
+    rod = hr.Rod(1.0, 1.5, 0.8, uhat=(1.0, 0.0, 0.0))
+    kappa = jnp.array([1e-2, 1e-4, 1e-6, 1e-8])
+    eq = equilibria(rod, kappa, 0.5)
+    growth = np.abs(np.asarray(eq.mu1[:, 0])) * np.asarray(kappa)
+    np.testing.assert_allclose(growth, growth[-1], rtol=1e-2)
+
+
+def test_nearly_isotropic_and_degenerate_quartic():
+    """K1 - K2 -> 0 (relative 1e-2 ... 1e-14): four registers on the axes persist; at
+    K1 = K2 with couplings the quartic degenerates and two registers remain."""
+    for rel in [1e-2, 1e-6, 1e-10, 1e-14]:
+        eq = equilibria(hr.Rod(1.0, 1.0 + rel, 0.7), 0.9, 0.3)
+        assert int(eq.count) == 4
+        np.testing.assert_allclose(np.sort(np.asarray(eq.phi)), np.arange(4) * np.pi / 2, atol=1e-14)
+    eq = equilibria(hr.Rod(1.0, 1.0, 0.9, 0.2, -0.1), 0.9, 0.3)
+    assert int(eq.count) == 2 and not bool(eq.continuum)
+    assert float(jnp.nanmax(jnp.abs(hr.helix_residual(hr.Rod(1.0, 1.0, 0.9, 0.2, -0.1), eq.u, eq.n)))) < 1e-13
+
+
+def test_extreme_stiffness_ratios_and_scale_equivariance(rng):
+    kappa = jnp.asarray(rng.uniform(0.1, 3, 32))
+    tau = jnp.asarray(rng.uniform(-3, 3, 32))
+    for ratio in [1e-6, 1e6]:
+        rod = hr.Rod(1.0, 1.0 + ratio, ratio, 0.0, 0.0, (0.3, -0.2, 0.1))
+        eq = equilibria(rod, kappa, tau)
+        res = hr.helix_residual(rod, eq.u, eq.n)
+        assert float(jnp.nanmax(jnp.abs(res))) < 1e-11 * (1 + ratio)
+    rod = random_rods(rng, 1)[0]
+    for factor in [1e-27, 1e12]:
+        a = equilibria(rod, kappa, tau)
+        b = equilibria(rod.scaled(factor), kappa, tau)
+        np.testing.assert_allclose(b.force / factor, a.force, rtol=1e-12)
+        np.testing.assert_array_equal(b.phi, a.phi)
+
+
+def test_gradients_match_central_differences(rng):
+    rod = random_rods(rng, 1)[0]
+
+    def forces(K1, kappa, tau):
+        r = hr.Rod(K1, rod.K2, rod.K3, rod.K13, rod.K23, rod.uhat)
+        eq = hr.helix_equilibria(r, kappa, tau)
+        return eq.force[:2], eq.moment[:2]
+
+    args = (rod.K1, jnp.asarray(0.9), jnp.asarray(0.6))
+    jac = jax.jacfwd(lambda *a: jnp.concatenate(forces(*a)), argnums=(0, 1, 2))(*args)
+    jac_rev = jax.jacrev(lambda *a: jnp.concatenate(forces(*a)), argnums=(0, 1, 2))(*args)
+    h = 1e-6
+    for i in range(3):
+        plus = list(args)
+        minus = list(args)
+        plus[i] = args[i] + h
+        minus[i] = args[i] - h
+        fd = (jnp.concatenate(forces(*plus)) - jnp.concatenate(forces(*minus))) / (2 * h)
+        np.testing.assert_allclose(jac[i], fd, rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(jac_rev[i], jac[i], rtol=1e-12, atol=1e-12)
+
+
+def test_gradients_finite_at_edges():
+    rod = hr.Rod(1.0, 1.5, 0.8, uhat=(0.0, 0.0, 0.0))  # B = C = 0: closed-form branch
+    g = jax.grad(lambda k: jnp.nansum(hr.helix_equilibria(rod, k, 0.0).energy))(0.7)
+    assert np.isfinite(g)
+    iso = hr.Rod(1.0, 1.0, 0.8)
+    g = jax.grad(lambda k: jnp.nansum(hr.helix_equilibria(iso, k, 0.3).force))(0.7)
+    assert np.isfinite(g)
+    g = jax.grad(lambda k: jnp.nansum(hr.helix_equilibria(rod, k, 0.3).force))(0.0)
+    assert np.isfinite(g)
+
+
+def test_vmap_equals_batch_and_no_retrace(rng):
+    rod = random_rods(rng, 1)[0]
+    kappa = jnp.asarray(rng.uniform(0.1, 2, 8))
+    tau = jnp.asarray(rng.uniform(-2, 2, 8))
+    batch = equilibria(rod, kappa, tau)
+    mapped = jax.vmap(lambda k, t: hr.helix_equilibria(rod, k, t))(kappa, tau)
+    np.testing.assert_allclose(mapped.force, batch.force, rtol=1e-13)
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def f(r, k, t):
+        return hr.helix_equilibria(r, k, t).force
+
+    f(rod, kappa, tau)
+    f(rod, kappa + 1.0, tau)
+
+
+def test_canonical_rod_is_equivalent(rng):
+    rod = hr.Rod(2.0, 1.0, 0.9, 0.3, -0.2, (0.4, 0.5, -0.3))
+    can = rod.canonical()
+    assert float(can.K1) <= float(can.K2)
+    a = equilibria(rod, 0.8, 0.4)
+    b = equilibria(can, 0.8, 0.4)
+    np.testing.assert_allclose(np.sort(np.asarray(a.force)[a.valid]), np.sort(np.asarray(b.force)[b.valid]), rtol=1e-12)
+    shifted = np.mod(np.asarray(a.phi)[a.valid] + np.pi / 2, 2 * np.pi)
+    np.testing.assert_allclose(np.sort(shifted), np.sort(np.asarray(b.phi)[b.valid]), atol=1e-12)
+
+
+def test_exceptional_families(rng):
+    rod = random_rods(rng, 1)[0]
+    u, m, n = hr.straight_family(rod, jnp.array([0.0, 2.0]))
+    assert float(jnp.abs(hr.helix_residual(rod, u, n)).max()) == 0.0
+    u, m, n = hr.pure_moment_family(rod, jnp.array([0.0, 0.3, -0.7]))
+    np.testing.assert_allclose(u[0], rod.uhat, atol=1e-14)
+    scale = 1 + float(jnp.max(jnp.abs(u))) ** 2
+    assert float(jnp.abs(hr.helix_residual(rod, u, n)).max()) < 1e-14 * scale

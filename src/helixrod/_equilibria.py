@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ._roots import NUM_SLOTS, register_roots
+from ._roots import register_roots
 from ._rod import Rod
 
 
@@ -222,5 +222,3 @@ def pure_moment_family(rod: Rod, mu1: ArrayLike):
     m = rod.moment(u)
     return u, m, jnp.zeros_like(u)
 
-
-NUM_REGISTERS = NUM_SLOTS

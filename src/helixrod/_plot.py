@@ -19,14 +19,10 @@ def plot_hyperboloid(rod, path, *, u3_slice=1.5, radii=None, extent=3.0):
 
     from ._equilibria import helix_equilibria
 
-    K = np.asarray(rod.K)
-    uh = np.asarray(rod.uhat)
-
     def h(u1, u2, u3):
-        v1, v2, v3 = u1 - uh[0], u2 - uh[1], u3 - uh[2]
-        m1 = K[0, 0] * v1 + K[0, 2] * v3
-        m2 = K[1, 1] * v2 + K[1, 2] * v3
-        return m1 * u2 - m2 * u1
+        u = jnp.stack(jnp.broadcast_arrays(u1, u2, u3), axis=-1)
+        m = np.asarray(rod.moment(u))
+        return m[..., 0] * u2 - m[..., 1] * u1
 
     fig = plt.figure(figsize=(11, 5))
     ax3 = fig.add_subplot(1, 2, 1, projection="3d")

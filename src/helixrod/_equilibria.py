@@ -10,11 +10,14 @@ $C = K_{13}(\\tau - \\hat u_3) - K_1 \\hat u_1$ is solved by `helixrod._roots`.
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from ._chunks import map_chunks
 from ._roots import register_roots
 from ._rod import Rod
 
@@ -78,14 +81,6 @@ def register_coefficients(rod: Rod, kappa: ArrayLike, tau: ArrayLike):
     return jnp.broadcast_arrays(A, B, C)
 
 
-def _moment(rod: Rod, u):
-    """m = K (u - uhat) for u of shape batch + (4, 3) and a rod of batch shape."""
-    K1, K2, K3, K13, K23 = (k[..., None] for k in (rod.K1, rod.K2, rod.K3, rod.K13, rod.K23))
-    v = u - rod.uhat[..., None, :]
-    v1, v2, v3 = v[..., 0], v[..., 1], v[..., 2]
-    return jnp.stack([K1 * v1 + K13 * v3, K2 * v2 + K23 * v3, K13 * v1 + K23 * v2 + K3 * v3], -1), v
-
-
 def _check_inputs(kappa, tau):
     for name, x in (("kappa", kappa), ("tau", tau)):
         if not jnp.issubdtype(jnp.result_type(x), jnp.number) or jnp.iscomplexobj(x):
@@ -118,12 +113,33 @@ def helix_equilibria(rod: Rod, kappa: ArrayLike, tau: ArrayLike) -> HelixEquilib
     eq.phi[eq.valid], eq.force[eq.valid], eq.stable[eq.valid]
     ```
     """
-    _check_inputs(kappa, tau)
+    shape = _check_inputs(kappa, tau)
     dtype = jnp.result_type(float)
-    kappa = jnp.asarray(kappa, dtype)
-    tau = jnp.asarray(tau, dtype)
+    batch = rod.K1.shape
+    try:
+        shape = jnp.broadcast_shapes(shape, batch)
+    except ValueError:
+        raise ValueError(
+            f"kappa, tau (broadcast shape {shape}) do not broadcast against the rod's batch "
+            f"shape {batch}"
+        ) from None
+    size = math.prod(shape)
+    kappa = jnp.broadcast_to(jnp.asarray(kappa, dtype), shape).reshape(size)
+    tau = jnp.broadcast_to(jnp.asarray(tau, dtype), shape).reshape(size)
+    if batch:
+        flat_rod = jax.tree.map(
+            lambda x: jnp.broadcast_to(x, shape + x.shape[len(batch) :]).reshape((size,) + x.shape[len(batch) :]),
+            rod,
+        )
+        eq = map_chunks(_equilibria_flat, (flat_rod, kappa, tau), size)
+    else:
+        eq = map_chunks(lambda k, t: _equilibria_flat(rod, k, t), (kappa, tau), size)
+    return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), eq)
+
+
+def _equilibria_flat(rod: Rod, kappa, tau) -> HelixEquilibria:
+    """`helix_equilibria` on flat `kappa`, `tau` of shape (n,), rod unbatched or (n,)."""
     A, B, C = register_coefficients(rod, kappa, tau)
-    kappa, tau = jnp.broadcast_arrays(kappa, tau, A)[:2]
     good = jnp.isfinite(kappa) & jnp.isfinite(tau) & (kappa >= 0)
     straight = good & (kappa == 0)
     helical = good & (kappa > 0)
@@ -138,14 +154,16 @@ def helix_equilibria(rod: Rod, kappa: ArrayLike, tau: ArrayLike) -> HelixEquilib
     k = jnp.where(helical, kappa, 1.0)[..., None]
     t = jnp.broadcast_to(tau[..., None], cos_phi.shape)
     u = jnp.stack([k * sin_phi, k * cos_phi, t], axis=-1)
-    m, v = _moment(rod, u)
+    # The rod with an axis for the register slots, so that its laws broadcast over them.
+    slot_rod = jax.tree.map(lambda x: jnp.expand_dims(x, rod.K1.ndim), rod)
+    m = slot_rod.moment(u)
     mu1 = (m[..., 0] * u[..., 0] + m[..., 1] * u[..., 1]) / (k * k)
     mu2 = m[..., 2] - mu1 * t
     n = mu2[..., None] * u
     norm_u = jnp.sqrt(k * k + t * t)
     force = mu2 * norm_u
     moment = mu1 * norm_u + mu2 * t / norm_u
-    energy = 0.5 * jnp.sum(v * m, axis=-1)
+    energy = slot_rod.energy(u)
     cos2 = cos_phi * cos_phi - sin_phi * sin_phi
     d2energy = k * (2 * A[..., None] * cos2 + B[..., None] * cos_phi - C[..., None] * sin_phi)
     d2energy = jnp.where(tangent, 0.0, d2energy)

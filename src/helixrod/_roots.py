@@ -25,9 +25,9 @@ secular function $B^2/(\\lambda+A)^2 + C^2/(\\lambda-A)^2 = 1$ gives, with no se
 So every register sits alone in a known bracket.  In each quadrant the substitution
 $t = \\tan(\\psi/2) \\in [0, 1]$ turns $f$ into the quartic
 $P(t) = -C_k t^4 + (2B_k - 4A_k) t^3 + (4A_k + 2B_k) t + C_k$, solved by bracketed
-Newton iteration unrolled a fixed number of times: elementwise arithmetic only (no
-eigenvalues, no data-dependent loops), so it fuses into one kernel and runs unchanged on
-a GPU.  Exact zeros of $B$ or $C$ (the common uncoupled rods) are read as a tiny positive
+Newton iteration a fixed number of times: elementwise arithmetic only (no eigenvalues,
+no data-dependent loops), run a cache-sized chunk of points at a time, unchanged on a
+GPU.  Exact zeros of $B$ or $C$ (the common uncoupled rods) are read as a tiny positive
 number, the limit from above, so every root still has its own bracket.
 
 Registers closer than about $\\sqrt{\\epsilon}$ (relative to the coefficients) to a tangency
@@ -42,11 +42,13 @@ import functools
 import jax
 import jax.numpy as jnp
 
+from ._chunks import map_chunks
+
 # Slots: 0 global minimum of W on the circle, 1 global maximum, 2 the local minimum and
 # 3 the local maximum of the inner pair (a tangent register, when there is one, in 2).
 NUM_SLOTS = 4
 
-# Iteration budget per bracket.  The fast path (fused, unrolled) localises by bisection
+# Iteration budget per bracket.  The fast path localises by bisection
 # and polishes by Newton; measured on random coefficients with ratios up to 1e7 it
 # reaches full precision everywhere (tests/test_roots.py).  Brackets it leaves
 # unconverged (near-cusp and near-tangent coefficients) are gathered and re-solved by
@@ -116,17 +118,15 @@ def _bracketed_newton(A, B, C, lo, hi, p_lo, p_hi, t, robust):
         )
 
     state = (lo, hi, p_lo, p_hi)
-    if robust:
-        state = jax.lax.fori_loop(0, _ROBUST_BISECTIONS, bisect, state)
-    else:
-        for i in range(_FAST_BISECTIONS):
-            state = bisect(i, state)
+    state = jax.lax.fori_loop(0, _ROBUST_BISECTIONS if robust else _FAST_BISECTIONS, bisect, state)
     lo, hi, p_lo, p_hi = state
     t = jnp.clip(t, lo, hi)
     last_below = jnp.zeros(jnp.shape(t), dtype=bool)
     last_above = jnp.zeros(jnp.shape(t), dtype=bool)
     step = jnp.full(jnp.shape(t), jnp.inf, dtype=t.dtype)
-    for _ in range(_ROBUST_NEWTON if robust else _FAST_NEWTON):
+
+    def newton(_, state):
+        t, lo, hi, p_lo, p_hi, last_below, last_above, step = state
         p, dp, _ = _poly(t, A, B, C)
         below = jnp.sign(p) == sign_lo
         lo, p_lo = jnp.where(below, t, lo), jnp.where(below, p, p_lo)
@@ -142,7 +142,11 @@ def _bracketed_newton(A, B, C, lo, hi, p_lo, p_hi, t, robust):
         t_safe = jnp.where(chord_ok, t_chord, 0.5 * (lo + hi))
         t_next = jnp.where(p == 0, t, jnp.where(newton_ok, t_newton, t_safe))
         step = jnp.where(p == 0, 0.0, jnp.abs(t_next - t))
-        t = t_next
+        return t_next, lo, hi, p_lo, p_hi, last_below, last_above, step
+
+    state = (t, lo, hi, p_lo, p_hi, last_below, last_above, step)
+    state = jax.lax.fori_loop(0, _ROBUST_NEWTON if robust else _FAST_NEWTON, newton, state)
+    t, lo, hi, p_lo, p_hi, last_below, last_above, step = state
     converged = (step <= _STEP_TOL) | (hi - lo <= _STEP_TOL)
     return t, converged
 
@@ -184,27 +188,14 @@ def _solve(A, B, C, robust=False):
     k_max = _quadrant(-sb, sc)
     k_in = _quadrant(-sb, -sc)
 
-    ones = jnp.ones_like(a)
-    zeros = jnp.zeros_like(a)
-
-    def outer(k):
-        Ak, Bk, Ck = _rotate_coeffs(a, b, c, k)
-        # P(0) = C_k and P(1) = 4 B_k have opposite signs; start from their chord.
-        p0, p1 = Ck, 4 * Bk
-        t0 = p0 / (p0 - p1)
-        return _bracketed_newton(Ak, Bk, Ck, zeros, ones, p0, p1, t0, robust)
-
-    t_min, ok_min = outer(k_min)
-    t_max, ok_max = outer(k_max)
-
-    # Inner quadrant: split at the separator direction (the tangent point on the astroid).
-    Ak, Bk, Ck = _rotate_coeffs(a, b, c, k_in)
+    # Separator of the inner quadrant (the tangent point on the astroid) and the sign
+    # of f there; every slot's bracket is then known.
+    Ai, Bi, Ci = _rotate_coeffs(a, b, c, k_in)
     ratio = jnp.cbrt(jnp.abs(c) / jnp.where(b == 0, 1.0, jnp.abs(b)))
     X, Y = _rotate_vector(-sb, -sc * ratio, k_in)
     t_star = Y / (jnp.sqrt(X * X + Y * Y) + X)
-    p_star, _, d2p_star = _poly(t_star, Ak, Bk, Ck)
-    p0, p1 = Ck, 4 * Bk
-    s_edge = jnp.sign(p0)
+    p_star, _, d2p_star = _poly(t_star, Ai, Bi, Ci)
+    s_edge = jnp.sign(Ci)
     # On the astroid itself (and near its cusps, where the polynomial test flattens out)
     # the sign of f at the separator decides: opposite to the edges -> a resolved pair.
     resolved = (p_star != 0) & (jnp.sign(p_star) == -s_edge)
@@ -212,22 +203,38 @@ def _solve(A, B, C, robust=False):
     inner_tangent = near_astroid & ~resolved
     # Near a tangency the pair straddles t_star at +-sqrt(-2 P / P''): start there.
     half_gap = jnp.sqrt(jnp.maximum(-2 * p_star / jnp.where(d2p_star == 0, 1.0, d2p_star), 0.0))
-    t_lo, ok_lo = _bracketed_newton(
-        Ak, Bk, Ck, zeros, t_star, p0, p_star, jnp.clip(t_star - half_gap, 0.0, t_star), robust
+
+    # All four brackets as one batch (trailing axis 4: the global minimum, the global
+    # maximum, the left and the right root of the inner pair), so that the iteration is
+    # written once.  P(0) = C_k and P(1) = 4 B_k; the outer brackets start from their chord.
+    k = jnp.stack([k_min, k_max, k_in, k_in], axis=-1)
+    Ak, Bk, Ck = _rotate_coeffs(a[..., None], b[..., None], c[..., None], k)
+    zeros = jnp.zeros_like(Ak)
+    ones = jnp.ones_like(Ak)
+    ts = t_star[..., None]
+    ps = p_star[..., None]
+    left = jnp.array([True, True, True, False])
+    right = jnp.array([True, True, False, True])
+    lo = jnp.where(left, 0.0, ts) + zeros
+    hi = jnp.where(right, 1.0, ts) + zeros
+    p_lo = jnp.where(left, Ck, ps)
+    p_hi = jnp.where(right, 4 * Bk, ps)
+    hg = half_gap[..., None]
+    t_chord = Ck / (Ck - 4 * Bk)
+    t0 = jnp.where(
+        jnp.arange(4) < 2, t_chord, jnp.where(left, jnp.clip(ts - hg, 0.0, ts), jnp.clip(ts + hg, ts, 1.0))
     )
-    t_hi, ok_hi = _bracketed_newton(
-        Ak, Bk, Ck, t_star, ones, p_star, p1, jnp.clip(t_star + half_gap, t_star, 1.0), robust
-    )
+    t, ok = _bracketed_newton(Ak, Bk, Ck, lo, hi, p_lo, p_hi, t0, robust)
+    t_lo, t_hi = t[..., 2], t[..., 3]
     # f runs from s_edge through -s_edge back to s_edge, so f' < 0 at t_lo iff s_edge > 0:
     # the stable (local minimum, f' > 0) root of the pair goes to slot 2.
     t_stable = jnp.where(s_edge < 0, t_lo, t_hi)
     t_unstable = jnp.where(s_edge < 0, t_hi, t_lo)
-    t_stable = jnp.where(inner_tangent, _extremum(Ak, Bk, Ck, t_star), t_stable)
-
-    t = jnp.stack([t_min, t_max, t_stable, t_unstable], axis=-1)
-    inner_ok = (ok_lo & ok_hi) | ~inner_pair
-    converged = (ok_min & ok_max & inner_ok) | factorable | continuum
-    k = jnp.stack([k_min, k_max, k_in, k_in], axis=-1)
+    t_stable = jnp.where(inner_tangent, _extremum(Ai, Bi, Ci, t_star), t_stable)
+    t = jnp.stack([t[..., 0], t[..., 1], t_stable, t_unstable], axis=-1)
+    inner_ok = (ok[..., 2] & ok[..., 3]) | ~inner_pair
+    converged = (ok[..., 0] & ok[..., 1] & inner_ok) | factorable | continuum
+    ones = jnp.ones_like(a)
     valid = jnp.stack([ones > 0, ones > 0, inner_pair | inner_tangent, inner_pair], axis=-1)
     tangent = jnp.zeros_like(valid).at[..., 2].set(inner_tangent)
 
@@ -263,34 +270,37 @@ def _solve_all(A, B, C):
     static budget, `size // 64 + 16`) and re-solved by the robust path, or, when there
     are more of them, the robust path runs on the whole batch."""
     A, B, C = jnp.broadcast_arrays(*(jnp.asarray(x, jnp.result_type(A, B, C, float)) for x in (A, B, C)))
-    *fast, converged = _solve(A, B, C)
     shape = A.shape
     n = A.size
+    A, B, C = A.reshape(n), B.reshape(n), C.reshape(n)
+    *fast, converged = map_chunks(_solve, (A, B, C), n)
     budget = n // 64 + 16
     if n <= budget:
         robust = _solve(A, B, C, robust=True)[:-1]
-        return tuple(
-            jnp.where(_expand(converged, f), f, r) for f, r in zip(fast, robust)
-        )
-    flat = [x.reshape((n,) + x.shape[len(shape):]) for x in fast]
-    bad = ~converged.reshape(n)
+        out = tuple(jnp.where(_expand(converged, f), f, r) for f, r in zip(fast, robust))
+        return tuple(x.reshape(shape + x.shape[1:]) for x in out)
+    bad = ~converged
     n_bad = jnp.sum(bad)
 
     def gathered():
         (idx,) = jnp.nonzero(bad, size=budget, fill_value=0)
-        redo = _solve(A.reshape(n)[idx], B.reshape(n)[idx], C.reshape(n)[idx], robust=True)[:-1]
+        redo = _solve(A[idx], B[idx], C[idx], robust=True)[:-1]
         # Unused budget slots point at index 0 with its fast result, so they rewrite it
         # unchanged unless index 0 itself was bad (then it is in idx too, same value).
         keep = bad[idx]
         return tuple(
-            f.at[idx].set(jnp.where(_expand(keep, r), r, f[idx])) for f, r in zip(flat, redo)
+            f.at[idx].set(jnp.where(_expand(keep, r), r, f[idx])) for f, r in zip(fast, redo)
         )
 
     def everywhere():
-        robust = _solve(A.reshape(n), B.reshape(n), C.reshape(n), robust=True)[:-1]
-        return tuple(jnp.where(_expand(bad, f), r, f) for f, r in zip(flat, robust))
+        robust = map_chunks(functools.partial(_solve, robust=True), (A, B, C), n)[:-1]
+        return tuple(jnp.where(_expand(bad, f), r, f) for f, r in zip(fast, robust))
 
-    out = jax.lax.cond(n_bad == 0, lambda: tuple(flat), lambda: jax.lax.cond(n_bad <= budget, gathered, everywhere))
+    out = jax.lax.cond(
+        n_bad == 0,
+        lambda: tuple(fast),
+        lambda: jax.lax.cond(n_bad <= budget, gathered, everywhere),
+    )
     return tuple(x.reshape(shape + x.shape[1:]) for x in out)
 
 

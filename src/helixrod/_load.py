@@ -70,6 +70,15 @@ def helices_under_load(
     M0 = jnp.asarray(moment, dtype)
     if F0.ndim or M0.ndim:
         raise ValueError("force and moment must be scalars (use jax.vmap for many)")
+    box = jnp.asarray([kappa_max, tau_lo, tau_hi], dtype)
+    return _under_load(rod, F0, M0, box, grid, newton_steps, max_solutions, rtol)
+
+
+@eqx.filter_jit
+def _under_load(rod, F0, M0, box, grid, newton_steps, max_solutions, rtol):
+    # One compiled program per (grid, newton_steps, max_solutions): the box is traced.
+    dtype = F0.dtype
+    kappa_max, tau_lo, tau_hi = box[0], box[1], box[2]
     ks = jnp.linspace(kappa_max / grid, kappa_max, grid, dtype=dtype)
     ts = jnp.linspace(tau_lo, tau_hi, grid, dtype=dtype)
     eq = helix_equilibria(rod, ks[:, None], ts[None, :])

@@ -208,3 +208,20 @@ def test_first_integrals_closed_form():
     u = ROD.uhat + np.linalg.solve(np.asarray(ROD.K), m)
     W = 0.5 * (u - ROD.uhat) @ np.asarray(ROD.K) @ (u - ROD.uhat)
     np.testing.assert_allclose(hr.first_integrals(ROD, n, m), [n @ n, m @ n, u @ m - W + n[2]], rtol=1e-14)
+
+
+def test_strain_energy_rod():
+    K = ROD.K
+    quadratic = hr.StrainEnergyRod(lambda v: 0.5 * v @ K @ v, uhat=ROD.uhat)
+    m = jnp.array([0.3, -0.2, 0.5])
+    np.testing.assert_allclose(quadratic.twist(m), ROD.twist(m), atol=1e-14)
+    # Implicit derivative of the Newton solve: du/dm = K^-1.
+    np.testing.assert_allclose(jax.jacfwd(quadratic.twist)(m), np.linalg.inv(np.asarray(K)), atol=1e-12)
+    quartic = hr.StrainEnergyRod(lambda v: 0.5 * v @ K @ v + 0.2 * (v @ v) ** 2, uhat=ROD.uhat)
+    u = jnp.array([[0.4, 0.9, 1.3], [-0.5, 0.2, 0.1]])
+    np.testing.assert_allclose(quartic.twist(quartic.moment(u)), u, atol=1e-13)
+    np.testing.assert_allclose(quartic.moment(u[0]), jax.grad(lambda x: quartic.energy(x))(u[0]), atol=1e-14)
+    sol = hr.solve_static(quartic, N1, m, 6.0, saveat=jnp.linspace(0.0, 6.0, 4))
+    assert bool(sol.ok)
+    assert float(jnp.abs(sol.drift).max()) < 1e-9
+    assert float(jnp.abs(sol.m[-1] - m).max()) > 1e-2  # it moved

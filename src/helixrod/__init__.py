@@ -25,6 +25,7 @@ from ._geometry import (
     radius_pitch as radius_pitch,
     to_polar as to_polar,
 )
+from ._constitutive import StrainEnergyRod as StrainEnergyRod
 from ._kirchhoff import (
     KirchhoffSolution as KirchhoffSolution,
     first_integrals as first_integrals,

@@ -37,6 +37,7 @@ from ._kirchhoff import (
 from ._lie import (
     BodyVelocityTerm as BodyVelocityTerm,
     CommutatorFreeRK4 as CommutatorFreeRK4,
+    MuntheKaasRK as MuntheKaasRK,
     RodState as RodState,
     hat as hat,
     se3_exp as se3_exp,

@@ -22,7 +22,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._equilibria import HelixEquilibria
 from ._geometry import helix_centreline
-from ._lie import BodyVelocityTerm, CommutatorFreeRK4, RodState, tangent
+from ._lie import BodyVelocityTerm, CommutatorFreeRK4, MuntheKaasRK, RodState, tangent
 
 
 _OUTPUTS = ("wrench", "frame", "centreline")
@@ -163,9 +163,12 @@ def solve_static(
     - `outputs`: names from `("wrench", "frame", "centreline")`. Only what is named is
       integrated and stored: the wrench alone is a 6-dimensional system; the centreline
       needs (and integrates, without storing) the frame.
-    - `solver`: default `CommutatorFreeRK4()` (Lie-group, exact on uniform helices,
-      orthonormal frame); any diffrax ODE solver works (it then integrates the frame as
-      9 plain components).
+    - `solver`: default `CommutatorFreeRK4()` (4th order, 4 evaluations a step);
+      `MuntheKaasRK(diffrax.Dopri8())` is an 8th-order alternative.  Both are exact on
+      uniform helices, keep the frame orthonormal and conserve $|n|^2$ and $m\\cdot n$ to
+      round-off.  Any diffrax ODE solver also works (it then integrates the frame as 9
+      plain components; `diffrax.Dopri8()` is the fastest on non-helical solutions at
+      tight tolerances).  The default was chosen by `benchmarks/bench_kirchhoff.py`.
     - `rtol`, `atol`: PID step-size tolerances; `steps`: use that many equal steps
       instead (no error control; may be traced, then `max_steps` must cover it).
     - `max_steps`, `adjoint` (default `RecursiveCheckpointAdjoint`, reverse mode; use
@@ -192,7 +195,7 @@ def solve_static(
     """
     with_frame, store_frame, with_x = _parse_outputs(outputs)
     solver = CommutatorFreeRK4() if solver is None else solver
-    geometric = isinstance(solver, CommutatorFreeRK4)
+    geometric = isinstance(solver, (CommutatorFreeRK4, MuntheKaasRK))
     if jnp.shape(rod.twist(jnp.zeros(3))) != (3,):
         raise ValueError("solve_static integrates one rod: jax.vmap over a batch of rods")
 

@@ -350,7 +350,9 @@ def helix_initial_conditions(eq: HelixEquilibria) -> tuple[Array, Array, Array, 
     `helix_equilibria`) so that `solve_static(rod, n0, m0, L, frame0=frame0, x0=x0)`
     reproduces it: the frame and centreline then equal `helix_frame(kappa, tau, phi, s)`
     and `helix_centreline(kappa, tau, s)`.  Shapes follow `eq` (per register; invalid
-    slots are NaN)."""
+    slots are NaN).  A register whose linearised wrench flow has an eigenvalue with positive
+    real part is spatially unstable: round-off then grows like $e^{\\lambda s}$ in any
+    integration, and the helix is reproduced only over lengths of a few $1/\\lambda$."""
     kappa = jnp.hypot(eq.u[..., 0], eq.u[..., 1])
     tau = eq.u[..., 2]
 

@@ -25,6 +25,24 @@ from ._geometry import (
     radius_pitch as radius_pitch,
     to_polar as to_polar,
 )
+from ._constitutive import StrainEnergyRod as StrainEnergyRod
+from ._kirchhoff import (
+    KirchhoffSolution as KirchhoffSolution,
+    first_integrals as first_integrals,
+    helix_frame as helix_frame,
+    helix_initial_conditions as helix_initial_conditions,
+    lab_wrench as lab_wrench,
+    solve_static as solve_static,
+)
+from ._lie import (
+    BodyVelocityTerm as BodyVelocityTerm,
+    CommutatorFreeRK4 as CommutatorFreeRK4,
+    MuntheKaasRK as MuntheKaasRK,
+    RodState as RodState,
+    hat as hat,
+    se3_exp as se3_exp,
+    so3_exp as so3_exp,
+)
 from ._load import LoadedHelices as LoadedHelices, helices_under_load as helices_under_load
 from ._rod import Rod as Rod, section_scales as section_scales
 from ._roots import register_roots as register_roots

@@ -1,0 +1,236 @@
+"""Static Kirchhoff equations: helices stay helices, conservation, scipy, order, gradients."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+import helixrod as hr
+
+ROD = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
+# (kappa, tau) = (1, 0.5), slot 0: a spatially stable helix (the linearised wrench flow has
+# purely imaginary eigenvalues), so round-off is not amplified exponentially along s.
+EQ = hr.helix_equilibria(ROD, 1.0, 0.5)
+N0, M0, FRAME0, X0 = (a[0] for a in hr.helix_initial_conditions(EQ))
+KAPPA, TAU, PHI = 1.0, 0.5, EQ.phi[0]
+TURN = 2 * np.pi / np.hypot(KAPPA, TAU)
+# A non-helical solution: the helix wrench perturbed.
+N1 = N0 + jnp.array([0.05, -0.1, 0.08])
+M1 = M0 + jnp.array([0.1, 0.05, -0.07])
+ROT1 = np.asarray(hr.so3_exp(jnp.array([0.3, -0.2, 0.5])))
+LENGTH1 = 12.0
+
+
+def scipy_reference(rod, n0, m0, frame0, x0, ts, rtol=1e-13):
+    """Independent numpy right-hand side: n, m, D (9, row-major), x; DOP853."""
+    K = np.asarray(rod.K)
+    uhat = np.asarray(rod.uhat)
+
+    def rhs(s, y):
+        n, m, D = y[:3], y[3:6], y[6:15].reshape(3, 3)
+        u = uhat + np.linalg.solve(K, m)
+        dn = -np.cross(u, n)
+        dm = -np.cross(u, m) - np.cross([0.0, 0.0, 1.0], n)
+        dD = np.stack([np.cross(D @ u, D[:, i]) for i in range(3)], axis=1)  # d_i' = (D u) x d_i
+        return np.concatenate([dn, dm, dD.ravel(), D[:, 2]])
+
+    y0 = np.concatenate([n0, m0, np.asarray(frame0).ravel(), x0])
+    out = solve_ivp(rhs, (0.0, ts[-1]), y0, method="DOP853", rtol=rtol, atol=rtol, t_eval=ts)
+    y = out.y.T
+    return y[:, :3], y[:, 3:6], y[:, 6:15].reshape(-1, 3, 3), y[:, 15:]
+
+
+@jax.jit
+def solve_full(n0, m0, frame0, x0, length, saveat, tol):
+    """Adaptive geometric solve; everything traced, so the tests share one compilation."""
+    return hr.solve_static(
+        ROD, n0, m0, length, frame0=frame0, x0=x0, saveat=saveat, outputs=("frame", "centreline"), rtol=tol, atol=tol
+    )
+
+
+@eqx.filter_jit
+def solve_fixed(n0, m0, frame0, x0, length, steps, solver=hr.CommutatorFreeRK4()):
+    return hr.solve_static(
+        ROD, n0, m0, length, frame0=frame0, x0=x0, outputs=("frame", "centreline"), steps=steps, max_steps=4096,
+        solver=solver,
+    )
+
+
+def test_helix_stays_a_helix_over_100_turns():
+    length = 100 * TURN
+    s = jnp.linspace(0.0, length, 5)
+    sol = solve_full(N0, M0, FRAME0, X0, length, s, 1e-8)
+    assert bool(sol.ok)
+    np.testing.assert_allclose(sol.n, jnp.broadcast_to(N0, sol.n.shape), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sol.m, jnp.broadcast_to(M0, sol.m.shape), rtol=0, atol=1e-12)
+    exact_frame = hr.helix_frame(KAPPA, TAU, PHI, s)
+    exact_x = hr.helix_centreline(KAPPA, TAU, s)
+    np.testing.assert_allclose(sol.frame, exact_frame, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(sol.x, exact_x, rtol=0, atol=1e-9)
+    gram = jnp.einsum("kji,kjl->kil", sol.frame, sol.frame) - jnp.eye(3)
+    assert float(jnp.abs(gram).max()) < 1e-13
+    assert float(jnp.abs(sol.drift).max()) < 1e-12
+
+
+def test_helix_exact_with_fixed_steps():
+    # Exact for constant u at any step within the stability bound: 60 steps for 10 turns
+    # (h |u| ~ 1).  Round-off on the neutral modes grows polynomially, hence 1e-12.
+    length = 10 * TURN
+    sol = solve_fixed(N0, M0, FRAME0, X0, length, jnp.asarray(60))
+    np.testing.assert_allclose(sol.frame[0], hr.helix_frame(KAPPA, TAU, PHI, length), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sol.x[0], hr.helix_centreline(KAPPA, TAU, length), rtol=0, atol=1e-11)
+
+
+def test_helix_frame_solves_frame_equation():
+    s = 0.7
+    D = hr.helix_frame(KAPPA, TAU, PHI, s)
+    dD = jax.jacfwd(lambda t: hr.helix_frame(KAPPA, TAU, PHI, t))(s)
+    np.testing.assert_allclose(dD, D @ hr.hat(EQ.u[0]), atol=1e-13)
+    np.testing.assert_allclose(D[:, 2], jax.jacfwd(lambda t: hr.helix_centreline(KAPPA, TAU, t))(s), atol=1e-13)
+    np.testing.assert_allclose(D.T @ D, np.eye(3), atol=1e-15)
+
+
+def test_agrees_with_scipy_and_conserves_integrals():
+    ts = np.linspace(0.0, LENGTH1, 5)
+    sol = solve_full(N1, M1, ROT1, jnp.ones(3), LENGTH1, ts, 1e-11)
+    n, m, D, x = scipy_reference(ROD, N1, M1, ROT1, np.ones(3), ts)
+    assert float(jnp.abs(sol.n - N1).max()) > 0.1  # genuinely non-helical
+    for ours, ref in ((sol.n, n), (sol.m, m), (sol.frame, D), (sol.x, x)):
+        np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-8)
+    # |n|^2 and m.n are conserved by construction, H to the tolerance.
+    assert float(jnp.abs(sol.drift[:, :2]).max()) < 1e-12
+    assert float(jnp.abs(sol.drift[:, 2]).max()) < 1e-9
+    # The lab force is constant and the lab moment obeys M' = -d3 x N.
+    N, M = sol.lab_wrench()
+    np.testing.assert_allclose(N, jnp.broadcast_to(N[0], N.shape), atol=1e-12)
+    np.testing.assert_allclose(M, M[0] - jnp.cross(sol.x - sol.x[0], N[0]), atol=1e-9)
+
+
+def test_standard_solver_agrees():
+    ts = np.array([0.0, LENGTH1 / 2, LENGTH1])
+    sol = hr.solve_static(
+        ROD, N1, M1, LENGTH1, frame0=ROT1, saveat=ts, outputs=("frame", "centreline"),
+        solver=diffrax.Tsit5(), rtol=1e-10, atol=1e-10,
+    )
+    n, m, D, x = scipy_reference(ROD, N1, M1, ROT1, np.zeros(3), ts)
+    np.testing.assert_allclose(sol.frame, D, atol=1e-7)
+    np.testing.assert_allclose(sol.x, x, atol=1e-7)
+    np.testing.assert_allclose(sol.m, m, atol=1e-7)
+
+
+@pytest.mark.parametrize(
+    "solver, counts, order",
+    [
+        (hr.CommutatorFreeRK4(), [16, 32, 64, 128], 4),
+        # Its 13 unrolled stages take ~40 s to compile on 2 busy cores.
+        pytest.param(hr.MuntheKaasRK(diffrax.Dopri8()), [6, 9, 13, 18], 8, marks=pytest.mark.slow),
+    ],
+)
+def test_convergence_order(solver, counts, order):
+    length = 4.0
+    ref = solve_fixed(N1, M1, ROT1, jnp.zeros(3), length, jnp.asarray(1024), solver)
+    errors = []
+    for count in counts:
+        sol = solve_fixed(N1, M1, ROT1, jnp.zeros(3), length, jnp.asarray(count), solver)
+        errors.append(max(float(jnp.abs(sol.x - ref.x).max()), float(jnp.abs(sol.frame - ref.frame).max())))
+    slope = -np.polyfit(np.log(counts), np.log(errors), 1)[0]
+    assert order - 0.4 < slope < order + 1.0, (slope, errors)
+
+
+def test_wrench_only_integrates_six_components():
+    sol = hr.solve_static(ROD, N1, M1, 3.0, rtol=1e-10, atol=1e-10)
+    assert sol.frame is None and sol.x is None
+    assert sol.n.shape == (1, 3) and sol.s.shape == (1,)
+    full = solve_full(N1, M1, ROT1, jnp.zeros(3), 3.0, jnp.linspace(0.0, 3.0, 5), 1e-10)
+    np.testing.assert_allclose(sol.m[0], full.m[-1], atol=1e-9)
+    np.testing.assert_allclose(sol.n[0], full.n[-1], atol=1e-9)
+
+
+@jax.jit
+def _tip(m0, length):
+    sol = hr.solve_static(ROD, N1, m0, length, outputs="centreline", rtol=1e-12, atol=1e-12)
+    assert sol.frame is None  # the frame is integrated for x, not stored
+    return sol.x[-1]
+
+
+@pytest.mark.slow  # reverse- and forward-mode compilation of the solve: ~1 min on 2 busy cores
+def test_gradients_match_central_differences():
+    m0, length = M1, jnp.asarray(3.0)
+    jac_rev = jax.jacrev(_tip, argnums=(0, 1))(m0, length)
+    tip_fwd = lambda m, l: hr.solve_static(  # noqa: E731
+        ROD, N1, m, l, outputs="centreline", rtol=1e-12, atol=1e-12, adjoint=diffrax.ForwardMode()
+    ).x[-1]
+    jac_fwd = jax.jacfwd(tip_fwd, argnums=(0, 1))(m0, length)
+    h = 1e-5
+    fd_m = np.stack([(_tip(m0 + h * e, length) - _tip(m0 - h * e, length)) / (2 * h) for e in np.eye(3)], -1)
+    fd_l = (_tip(m0, length + h) - _tip(m0, length - h)) / (2 * h)
+    for jac in (jac_rev, jac_fwd):
+        np.testing.assert_allclose(jac[0], fd_m, atol=1e-6)
+        np.testing.assert_allclose(jac[1], fd_l, atol=1e-6)
+
+
+@jax.jit
+def _solve_flagged(n0, length):
+    return hr.solve_static(ROD, n0, M1, length, outputs="frame", throw=False)
+
+
+def test_vmap_equals_loop_and_flags_bad_points():
+    scales = jnp.array([0.0, 0.5, 1.0, 0.3, 0.7])
+    batch_n = N0 + scales[:, None] * (N1 - N0)
+    batch_n = batch_n.at[3, 0].set(jnp.nan)
+    lengths = jnp.array([2.0, 2.0, 2.0, 2.0, -1.0])
+    batched = jax.vmap(_solve_flagged)(batch_n, lengths)
+    np.testing.assert_array_equal(batched.valid_input, [True, True, True, False, False])
+    np.testing.assert_array_equal(batched.ok, [True, True, True, False, False])
+    assert bool(jnp.all(jnp.isnan(batched.m[3:])))
+    for i in range(3):
+        single = _solve_flagged(batch_n[i], lengths[i])
+        np.testing.assert_allclose(batched.frame[i], single.frame, atol=1e-12)
+        np.testing.assert_allclose(batched.m[i], single.m, atol=1e-12)
+
+
+def test_bad_input_is_an_error():
+    with pytest.raises(ValueError, match="finite"):
+        hr.solve_static(ROD, jnp.array([jnp.nan, 0, 0]), M1, 1.0)
+    with pytest.raises(ValueError, match="length"):
+        hr.solve_static(ROD, N1, M1, 0.0)
+    with pytest.raises(ValueError, match="unknown output"):
+        hr.solve_static(ROD, N1, M1, 1.0, outputs=("frames",))
+    with pytest.raises(ValueError, match="shape"):
+        hr.solve_static(ROD, N1[:2], M1, 1.0)
+
+
+def test_max_steps():
+    with pytest.raises(Exception, match="max_steps"):
+        hr.solve_static(ROD, N1, M1, LENGTH1, max_steps=3)
+    sol = hr.solve_static(ROD, N1, M1, LENGTH1, max_steps=3, throw=False)
+    assert sol.result == diffrax.RESULTS.max_steps_reached
+    assert not bool(sol.ok)
+
+
+def test_first_integrals_closed_form():
+    n, m = jnp.array([0.3, -0.2, 1.1]), jnp.array([0.5, 0.4, -0.3])
+    u = ROD.uhat + np.linalg.solve(np.asarray(ROD.K), m)
+    W = 0.5 * (u - ROD.uhat) @ np.asarray(ROD.K) @ (u - ROD.uhat)
+    np.testing.assert_allclose(hr.first_integrals(ROD, n, m), [n @ n, m @ n, u @ m - W + n[2]], rtol=1e-14)
+
+
+@pytest.mark.slow  # Newton inside every stage: ~1 min to compile on 2 busy cores
+def test_strain_energy_rod():
+    K = ROD.K
+    quadratic = hr.StrainEnergyRod(lambda v: 0.5 * v @ K @ v, uhat=ROD.uhat)
+    m = jnp.array([0.3, -0.2, 0.5])
+    np.testing.assert_allclose(quadratic.twist(m), ROD.twist(m), atol=1e-14)
+    # Implicit derivative of the Newton solve: du/dm = K^-1.
+    np.testing.assert_allclose(jax.jacfwd(quadratic.twist)(m), np.linalg.inv(np.asarray(K)), atol=1e-12)
+    quartic = hr.StrainEnergyRod(lambda v: 0.5 * v @ K @ v + 0.2 * (v @ v) ** 2, uhat=ROD.uhat)
+    u = jnp.array([[0.4, 0.9, 1.3], [-0.5, 0.2, 0.1]])
+    np.testing.assert_allclose(quartic.twist(quartic.moment(u)), u, atol=1e-13)
+    np.testing.assert_allclose(quartic.moment(u[0]), jax.grad(lambda x: quartic.energy(x))(u[0]), atol=1e-14)
+    sol = hr.solve_static(quartic, N1, m, 6.0, saveat=jnp.linspace(0.0, 6.0, 4))
+    assert bool(sol.ok)
+    assert float(jnp.abs(sol.drift).max()) < 1e-9
+    assert float(jnp.abs(sol.m[-1] - m).max()) > 1e-2  # it moved

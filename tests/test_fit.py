@@ -67,8 +67,10 @@ def test_noise_free_recovery_and_linear_fit_agree(rng):
 
 def test_symmetric_case_reports_symmetry_and_null_direction(rng):
     """uhat1 = uhat2 = 0: the frame symmetries apply and are reported; the fit lies on the
-    truth's orbit.  K1 = K2 with couplings: a continuous rotation, reported as a null
-    direction with infinite/large standard errors instead of false certainty."""
+    truth's orbit.  K1 = K2 with couplings: a continuous rotation of the frame, so the fit
+    may turn all of the coupling into K23 -- and then the minimum-energy registers bend
+    about d2 only and K1 is not seen at all: both are reported as null directions
+    (infinite standard errors), never as false certainty."""
     kappa, tau = _grid(rng)
     rod = hr.Rod(0.8, 1.4, 1.1, K13=0.25, K23=-0.15, uhat=(0.0, 0.0, 0.3))
     data = hr.synthetic_helix_data(rod, kappa, tau, 0.0, jax.random.key(1))
@@ -88,8 +90,9 @@ def test_symmetric_case_reports_symmetry_and_null_direction(rng):
     assert fit.cost < 1e-16
     assert ident.rank < 5 or ident.condition_number > 1e6
     weak = [dict(w) for w in ident.weak]
-    assert any("K13" in w and "K23" in w for w in weak)
+    assert any("K13" in w for w in weak)
     assert not (np.isfinite(float(fit.stderr["K13"])) and float(fit.stderr["K13"]) < 1.0)
+    assert any("K1 and K2 agree" in note for note in ident.notes)
     # what is determined is still determined: |(K13, K23)|
     np.testing.assert_allclose(np.hypot(fit.params["K13"], fit.params["K23"]), np.hypot(0.3, 0.2), rtol=1e-6)
 

@@ -1,6 +1,6 @@
 """Generate the bundled example data set ``src/helixrod/data/example_spring.csv``.
 
-Forty helices of the coupled, intrinsically curved rod of Chouaieb, Goriely & Maddocks
+Twenty-four helices of the coupled, intrinsically curved rod of Chouaieb, Goriely & Maddocks
 (PNAS 2006, fig. 2: K1 = 1, K2 = 3/2, K3 = 0.8, K13 = K23 = 1/2, uhat = (1, 0, 0)), each at
 its minimum-energy register, with 1% Gaussian noise on the axial force and moment.
 Dimensionless units (stiffness 1 = K1).  Run: ``python examples/make_example_data.py``.
@@ -20,8 +20,8 @@ ROD = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
 
 def main(path=Path(__file__).resolve().parents[1] / "src" / "helixrod" / "data" / "example_spring.csv"):
     rng = np.random.default_rng(2006)
-    kappa = rng.uniform(0.3, 2.5, 40)
-    tau = rng.uniform(-1.5, 2.0, 40)
+    kappa = rng.uniform(0.3, 2.5, 24)
+    tau = rng.uniform(-1.5, 2.0, 24)
     data = hr.synthetic_helix_data(
         ROD, kappa, tau, 0.01, jax.random.key(9398),
         units={"force": "K1/L^2", "moment": "K1/L", "kappa": "1/L", "tau": "1/L", "force_sigma": "K1/L^2",

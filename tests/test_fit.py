@@ -192,3 +192,24 @@ def test_bad_inputs_give_documented_errors(tmp_path):
     assert len(hr.HelixData.from_csv(path, force_sigma=0.1, moment_sigma=0.1)) == 1
     with pytest.raises(ValueError, match=r"shape \(n, 3\)"):
         hr.fit_stiffness_linear(np.ones((3, 2)), np.ones((3, 2)))
+
+
+def test_cli_fit_example(tmp_path):
+    """`helixrod fit` on the bundled example (24 points: shares the compiled fit above)."""
+    from typer.testing import CliRunner
+
+    from helixrod.cli import app, example_data_path
+
+    out, png = tmp_path / "fit.json", tmp_path / "fit.png"
+    result = CliRunner().invoke(app, ["fit", str(example_data_path()), "--uhat", "1,0,0", "--out", str(out), "--plot", str(png)])
+    assert result.exit_code == 0, result.output
+    assert "K13" in result.output and "correlations" in result.output
+    import json
+
+    summary = json.loads(out.read_text())
+    truth = {"K1": 1.0, "K2": 1.5, "K3": 0.8, "K13": 0.5, "K23": 0.5}
+    for name, value in truth.items():  # 1% noise: within 5 standard errors
+        assert abs(summary["params"][name] - value) <= 5 * summary["stderr"][name]
+    assert png.stat().st_size > 10_000
+    bad = CliRunner().invoke(app, ["fit", str(example_data_path()), "--uhat", "1,0"])
+    assert bad.exit_code != 0

@@ -105,7 +105,7 @@ def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args()
-    sizes = [20, 100, 1000] if args.quick else [20, 100, 1000, 10000]
+    sizes = [20, 200] if args.quick else [20, 100, 1000, 10000]
     noises = [0.01] if args.quick else [0.001, 0.01, 0.05]
     rng = np.random.default_rng(0)
     rows = []

@@ -45,6 +45,17 @@ from ._lie import (
 )
 from ._load import LoadedHelices as LoadedHelices, helices_under_load as helices_under_load
 from ._rod import Rod as Rod, section_scales as section_scales
+# -- inverse spring problem (issue 4) --
+from ._data import HelixData as HelixData, synthetic_helix_data as synthetic_helix_data
+from ._fit import (
+    Bootstrap as Bootstrap,
+    Identifiability as Identifiability,
+    StiffnessFit as StiffnessFit,
+    bootstrap as bootstrap,
+    fit_stiffness as fit_stiffness,
+    fit_stiffness_linear as fit_stiffness_linear,
+)
+# -- end issue 4 --
 from ._roots import register_roots as register_roots
 
 __version__ = importlib.metadata.version("helixrod")

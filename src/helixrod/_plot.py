@@ -66,3 +66,39 @@ def plot_hyperboloid(rod, path, *, u3_slice=1.5, radii=None, extent=3.0):
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+# -- inverse spring problem (issue 4) ------------------------------------------------------
+def plot_fit(data, fit, path):
+    """Observed against predicted axial force and moment of a `StiffnessFit` (error bars:
+    the data's sigmas; the diagonal is a perfect fit), and the normalised residuals.
+    Writes a PNG to `path`."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2))
+    n = len(data)
+    r = np.asarray(fit.residuals)
+    for ax, obs, pred, sig, label, colour in (
+        (axes[0], data.force, fit.predicted_force, data.force_sigma, "axial force $F$", OKABE_ITO[0]),
+        (axes[1], data.moment, fit.predicted_moment, data.moment_sigma, "axial moment $M$", OKABE_ITO[1]),
+    ):
+        obs, pred, sig = np.asarray(obs), np.asarray(pred), np.asarray(sig)
+        ax.errorbar(pred, obs, yerr=sig, fmt="o", ms=4, color=colour, ecolor="0.6", lw=1)
+        lo, hi = min(obs.min(), pred.min()), max(obs.max(), pred.max())
+        ax.plot([lo, hi], [lo, hi], "k--", lw=1)
+        ax.set_xlabel(f"predicted {label}")
+        ax.set_ylabel(f"observed {label}")
+    axes[2].plot(np.arange(n), r[:n], "o", ms=4, color=OKABE_ITO[0], label="force")
+    axes[2].plot(np.arange(n), r[n : 2 * n], "s", ms=4, color=OKABE_ITO[1], label="moment")
+    axes[2].axhline(0, color="k", lw=1)
+    axes[2].set_xlabel("data point")
+    axes[2].set_ylabel("residual / sigma")
+    axes[2].legend()
+    fig.suptitle(f"fit_stiffness: cost = {float(fit.cost):.4g}, reduced chi2 = {float(fit.chi2_reduced):.3g}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

@@ -58,5 +58,139 @@ def demo(out: Path = typer.Option(Path("helixrod_demo"), help="directory for the
     console.print(f"wrote {path}")
 
 
+# -- inverse spring problem (issue 4) ------------------------------------------------------
+def _parse_floats(text: str, n: int, what: str):
+    try:
+        values = [float(x) for x in text.replace(" ", "").split(",")]
+    except ValueError:
+        raise typer.BadParameter(f"{what} must be {n} comma-separated numbers, got {text!r}") from None
+    if len(values) != n:
+        raise typer.BadParameter(f"{what} must be {n} comma-separated numbers, got {text!r}")
+    return values
+
+
+def print_fit(console, fit) -> None:
+    """Rich tables of a `StiffnessFit`: values with standard errors, correlations, and the
+    identifiability report."""
+    import numpy as np
+    from rich.table import Table
+
+    table = Table(title=f"fit_stiffness ({fit.method}): cost = {float(fit.cost):.6g}, reduced chi2 = {float(fit.chi2_reduced):.4g}")
+    for col in ("parameter", "value", "stderr", "relative"):
+        table.add_column(col, justify="right")
+    for name in fit.names:
+        v, e = float(fit.params[name]), float(fit.stderr[name])
+        rel = f"{abs(e / v):.2%}" if v != 0 and np.isfinite(e) else "-"
+        table.add_row(name, f"{v:.6g}", f"{e:.3g}", rel)
+    console.print(table)
+    corr = Table(title="correlations")
+    corr.add_column("")
+    for name in fit.names:
+        corr.add_column(name, justify="right")
+    c = np.asarray(fit.correlation)
+    for i, name in enumerate(fit.names):
+        corr.add_row(name, *[("" if j > i else f"{c[i, j]:+.2f}") for j in range(len(fit.names))])
+    console.print(corr)
+    ident = fit.identifiability
+    console.print(
+        f"converged: {fit.success} ({fit.message}); {fit.n_agree} of {fit.n_starts} starts reached the best "
+        f"minimum; scaled-Jacobian singular values {np.array2string(np.asarray(ident.singular_values), precision=3)}, "
+        f"condition number {float(ident.condition_number):.3g}, rank {ident.rank}"
+    )
+    if ident.weak:
+        for w, e in zip(ident.weak, ident.weak_stderr):
+            combo = " ".join(f"{c:+.3f}*{n}" for n, c in w)
+            console.print(f"weakly determined: {combo}  (scaled stderr {e:.3g})")
+    else:
+        console.print(f"every parameter combination determined to better than {ident.weak_threshold:.0%} (scaled)")
+    for s in ident.symmetries:
+        console.print(f"symmetry (identical predictions): {s}")
+    for note in ident.notes:
+        console.print(f"note: {note}")
+
+
+@app.command()
+def fit(
+    data: Path = typer.Argument(..., help="CSV file (see helixrod.HelixData.from_csv)"),
+    uhat: str = typer.Option(None, help="fixed intrinsic twist 'u1,u2,u3' (default 0,0,0)"),
+    fit_uhat: bool = typer.Option(False, "--fit-uhat", help="fit the intrinsic twist too"),
+    fix: list[str] = typer.Option([], help="hold a parameter fixed, e.g. --fix K13=0 (repeatable)"),
+    branch: str = typer.Option("nearest", help="register rule: nearest, stable or min-energy"),
+    method: str = typer.Option("levenberg-marquardt", help="levenberg-marquardt, gauss-newton, lbfgs, adam"),
+    n_starts: int = typer.Option(32, help="number of (vmapped) starts"),
+    seed: int = typer.Option(0, help="seed of the random starts"),
+    relative_sigma: bool = typer.Option(False, "--relative-sigma", help="scale errors by the reduced chi2"),
+    out: Path = typer.Option(None, help="write the fit as JSON"),
+    plot: Path = typer.Option(None, help="write observed vs predicted F and M as PNG"),
+) -> None:
+    """Fit K1, K2, K3, K13, K23 (and uhat) to measured helices (the inverse spring problem)."""
+    import json
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from rich.console import Console
+
+    from . import HelixData, fit_stiffness
+
+    console = Console()
+    fixed = {}
+    for item in fix:
+        name, _, value = item.partition("=")
+        if not value:
+            raise typer.BadParameter(f"--fix needs NAME=VALUE, got {item!r}")
+        fixed[name.strip()] = float(value)
+    try:
+        observations = HelixData.from_csv(data)
+        result = fit_stiffness(
+            observations,
+            uhat=None if uhat is None else _parse_floats(uhat, 3, "--uhat"),
+            fit_uhat=fit_uhat,
+            fix=fixed or None,
+            branch=branch,
+            method=method,
+            n_starts=n_starts,
+            key=jax.random.key(seed),
+            absolute_sigma=not relative_sigma,
+        )
+    except ValueError as error:
+        console.print(f"[red]error:[/red] {error}")
+        raise typer.Exit(code=2) from None
+    console.print(f"{len(observations)} helices from {data}")
+    print_fit(console, result)
+    if out is not None:
+        out.write_text(json.dumps(result.to_dict(), indent=2))
+        console.print(f"wrote {out}")
+    if plot is not None:
+        from ._plot import plot_fit
+
+        plot_fit(observations, result, plot)
+        console.print(f"wrote {plot}")
+
+
+def example_data_path() -> Path:
+    """The bundled example data set (see examples/make_example_data.py)."""
+    return Path(__file__).resolve().parent / "data" / "example_spring.csv"
+
+
+def demo_fit(console, out: Path) -> None:
+    """The inverse spring problem on the bundled example data: for `helixrod demo`."""
+    from . import HelixData, fit_stiffness
+    from ._plot import plot_fit
+
+    data = HelixData.from_csv(example_data_path())
+    console.print(
+        f"Inverse spring problem: {len(data)} noisy helices of that rod (bundled example); "
+        "fitting K with uhat = (1, 0, 0) known"
+    )
+    result = fit_stiffness(data, uhat=(1.0, 0.0, 0.0))
+    print_fit(console, result)
+    out.mkdir(parents=True, exist_ok=True)
+    path = plot_fit(data, result, out / "fit.png")
+    console.print(f"wrote {path}")
+
+
+# -- end issue 4 --
+
 if __name__ == "__main__":  # pragma: no cover
     app()

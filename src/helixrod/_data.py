@@ -1,0 +1,343 @@
+"""Observations of helices under an axial wrench: `HelixData`, its CSV form, and
+`synthetic_helix_data`.
+
+Conventions (DESIGN.md): `force` is $F = n\\cdot a$ and `moment` is $M = m\\cdot a$ along the
+helix axis $a = u/|u|$, $u = (\\kappa\\sin\\varphi, \\kappa\\cos\\varphi, \\tau)$.  Because
+$a\\cdot d_3 = \\tau/|u|$, the axis points the way the helix advances only for $\\tau > 0$:
+for a left-handed helix ($\\tau < 0$) a pull is $F < 0$.  Data measured along the direction of
+advance (pull positive whatever the handedness) must be multiplied by
+$\\operatorname{sign}\\tau$ first; `HelixData(..., convention="advance")` does it.
+Neither $F$ nor $M$ depends on the choice of the director frame (they are scalars along
+the axis), so the data carry no sign convention beyond this one; the register $\\varphi$ does
+(it is measured from $d_2$ towards $d_1$, DESIGN.md), which is why an observed register
+breaks the frame symmetries of the fit.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from ._equilibria import helix_equilibria
+from ._rod import Rod
+
+#: Column order of the CSV form; the first four are required.
+CSV_COLUMNS = (
+    "force",
+    "moment",
+    "kappa",
+    "tau",
+    "force_sigma",
+    "moment_sigma",
+    "kappa_sigma",
+    "tau_sigma",
+    "register",
+    "register_sigma",
+)
+_OPTIONAL = ("kappa_sigma", "tau_sigma", "register", "register_sigma")
+
+
+class HelixData(eqx.Module):
+    """Measured uniform helices: axial force and moment at given curvature and torsion.
+
+    Fields (each shape `(n,)`, float64): `force` $F$, `moment` $M$, `kappa` $\\kappa > 0$,
+    `tau` $\\tau$, and the standard deviations `force_sigma`, `moment_sigma` (a scalar
+    broadcasts to every point).  Optional (`None` when absent): `kappa_sigma`, `tau_sigma`
+    (errors in the abscissae, used by `fit_stiffness(..., errors_in_variables=True)`),
+    `register` $\\varphi$ of each helix if it was observed, and `register_sigma`
+    (then the fit also matches $\\varphi$).  `units` maps column names to unit strings
+    (free text, carried to and from CSV, never converted).
+
+    Units must be consistent: with force in [F] and twists in [1/L], moments are in [F L]
+    and the fitted stiffnesses in [F L^2].
+
+    `convention`: `"axis"` (default) -- `force`, `moment` are along $a = u/|u|$ as in
+    DESIGN.md; `"advance"` -- they were measured along the direction in which the helix
+    advances (pull positive for either handedness), and are multiplied by
+    $\\operatorname{sign}\\tau$ here.
+
+    Bad input raises `ValueError` naming the problem: mismatched lengths, non-finite
+    entries (reported by row number, counted from 0), $\\sigma \\le 0$, $\\kappa \\le 0$
+    ($\\kappa = 0$ is a straight rod, which has no register), $\\tau = 0$ with
+    `convention="advance"`.
+    """
+
+    force: Float[Array, " n"]
+    moment: Float[Array, " n"]
+    kappa: Float[Array, " n"]
+    tau: Float[Array, " n"]
+    force_sigma: Float[Array, " n"]
+    moment_sigma: Float[Array, " n"]
+    kappa_sigma: Float[Array, " n"] | None
+    tau_sigma: Float[Array, " n"] | None
+    register: Float[Array, " n"] | None
+    register_sigma: Float[Array, " n"] | None
+    unit_labels: tuple = eqx.field(static=True)
+
+    def __init__(
+        self,
+        force: ArrayLike,
+        moment: ArrayLike,
+        kappa: ArrayLike,
+        tau: ArrayLike,
+        force_sigma: ArrayLike = 1.0,
+        moment_sigma: ArrayLike = 1.0,
+        *,
+        kappa_sigma: ArrayLike | None = None,
+        tau_sigma: ArrayLike | None = None,
+        register: ArrayLike | None = None,
+        register_sigma: ArrayLike | None = None,
+        units: dict | None = None,
+        convention: str = "axis",
+    ):
+        columns = {"force": force, "moment": moment, "kappa": kappa, "tau": tau}
+        arrays = {}
+        for name, x in columns.items():
+            a = np.asarray(x, dtype=float)
+            if a.ndim != 1:
+                raise ValueError(f"HelixData: {name} must be one-dimensional, got shape {a.shape}")
+            arrays[name] = a
+        lengths = {name: a.shape[0] for name, a in arrays.items()}
+        if len(set(lengths.values())) != 1:
+            raise ValueError(f"HelixData: mismatched lengths {lengths}")
+        n = lengths["force"]
+        if n == 0:
+            raise ValueError("HelixData: no data points")
+        sigmas = {"force_sigma": force_sigma, "moment_sigma": moment_sigma}
+        optional = {
+            "kappa_sigma": kappa_sigma,
+            "tau_sigma": tau_sigma,
+            "register": register,
+            "register_sigma": register_sigma,
+        }
+        for name, x in {**sigmas, **optional}.items():
+            if x is None:
+                continue
+            a = np.asarray(x, dtype=float)
+            if a.ndim == 0:
+                a = np.full(n, float(a))
+            if a.shape != (n,):
+                raise ValueError(f"HelixData: {name} must be a scalar or have length {n}, got shape {a.shape}")
+            arrays[name] = a
+        if register_sigma is not None and register is None:
+            raise ValueError("HelixData: register_sigma given without register")
+        bad_rows = {}
+        for name, a in arrays.items():
+            rows = np.flatnonzero(~np.isfinite(a))
+            if rows.size:
+                bad_rows[name] = rows.tolist()
+        if bad_rows:
+            rows = sorted({r for v in bad_rows.values() for r in v})
+            raise ValueError(
+                f"HelixData: non-finite (NaN or infinite) values in rows {rows[:20]}"
+                + (" ..." if len(rows) > 20 else "")
+                + f" (columns: {', '.join(f'{k} rows {v[:5]}' for k, v in bad_rows.items())})"
+            )
+        for name in ("force_sigma", "moment_sigma", "kappa_sigma", "tau_sigma", "register_sigma"):
+            if name in arrays and np.any(arrays[name] <= 0):
+                rows = np.flatnonzero(arrays[name] <= 0)
+                raise ValueError(f"HelixData: {name} must be > 0; rows {rows[:20].tolist()} are not")
+        if np.any(arrays["kappa"] <= 0):
+            rows = np.flatnonzero(arrays["kappa"] <= 0)
+            raise ValueError(
+                f"HelixData: kappa must be > 0 (kappa < 0 is not a curvature; kappa = 0 is a "
+                f"straight rod, which has no register); rows {rows[:20].tolist()} are not"
+            )
+        if convention == "advance":
+            if np.any(arrays["tau"] == 0):
+                raise ValueError("HelixData: convention='advance' needs tau != 0 (a ring has no direction of advance)")
+            s = np.sign(arrays["tau"])
+            arrays["force"] = arrays["force"] * s
+            arrays["moment"] = arrays["moment"] * s
+        elif convention != "axis":
+            raise ValueError(f"HelixData: convention must be 'axis' or 'advance', got {convention!r}")
+        dtype = jnp.result_type(float)
+        for name in CSV_COLUMNS:
+            setattr(self, name, jnp.asarray(arrays[name], dtype) if name in arrays else None)
+        self.unit_labels = tuple(sorted((str(k), str(v)) for k, v in (units or {}).items()))
+
+    @property
+    def units(self) -> dict[str, str]:
+        """Unit strings by column name (as given, or read from a CSV units line)."""
+        return dict(self.unit_labels)
+
+    def __len__(self) -> int:
+        return int(self.force.shape[0])
+
+    @property
+    def size(self) -> int:
+        """Number of data points."""
+        return len(self)
+
+    # -- CSV ----------------------------------------------------------------------------
+    @classmethod
+    def from_csv(
+        cls,
+        path: str | Path,
+        *,
+        force_sigma: ArrayLike | None = None,
+        moment_sigma: ArrayLike | None = None,
+        convention: str = "axis",
+    ) -> "HelixData":
+        """Read data written by `to_csv` (or by hand).
+
+        Format: lines starting with `#` are comments.  The first other line is the header,
+        a comma-separated subset of `force, moment, kappa, tau, force_sigma, moment_sigma,
+        kappa_sigma, tau_sigma, register, register_sigma` in any order (the first four are
+        required; the sigma columns may instead be given as arguments, which then
+        override).  The next line may be a units line: same columns, unit strings (e.g.
+        `pN,pN nm,1/nm,1/nm,pN,pN nm`); it is recognised by its first cell not being a
+        number.  Then one data row per helix; an empty cell in an optional column is not
+        allowed (drop the column instead).  Errors name the file line (counted from 1).
+        """
+        path = Path(path)
+        text = path.read_text()
+        lines = [(i + 1, line) for i, line in enumerate(text.splitlines()) if line.strip() and not line.lstrip().startswith("#")]
+        if not lines:
+            raise ValueError(f"{path}: no header line")
+        header_line, header = lines[0]
+        names = [c.strip() for c in next(csv.reader([header]))]
+        unknown = [c for c in names if c not in CSV_COLUMNS]
+        if unknown:
+            raise ValueError(f"{path}:{header_line}: unknown columns {unknown}; allowed: {list(CSV_COLUMNS)}")
+        missing = [c for c in ("force", "moment", "kappa", "tau") if c not in names]
+        if missing:
+            raise ValueError(f"{path}:{header_line}: missing required columns {missing}")
+        if len(set(names)) != len(names):
+            raise ValueError(f"{path}:{header_line}: repeated column names {names}")
+        body = lines[1:]
+        units = {}
+        if body:
+            first = next(csv.reader([body[0][1]]))
+            try:
+                float(first[0])
+            except ValueError:
+                if len(first) != len(names):
+                    raise ValueError(f"{path}:{body[0][0]}: units line has {len(first)} cells, header has {len(names)}") from None
+                units = {n: u.strip() for n, u in zip(names, first)}
+                body = body[1:]
+        values = np.empty((len(body), len(names)))
+        for r, (lineno, line) in enumerate(body):
+            cells = next(csv.reader([line]))
+            if len(cells) != len(names):
+                raise ValueError(f"{path}:{lineno}: {len(cells)} cells, expected {len(names)} ({', '.join(names)})")
+            try:
+                values[r] = [float(c) for c in cells]
+            except ValueError:
+                raise ValueError(f"{path}:{lineno}: not a number in {cells}") from None
+        bad = ~np.all(np.isfinite(values), axis=1)
+        if bad.any():
+            file_lines = [body[r][0] for r in np.flatnonzero(bad)]
+            raise ValueError(
+                f"{path}: non-finite (NaN or infinite) values on lines {file_lines[:20]} "
+                f"(data rows {np.flatnonzero(bad)[:20].tolist()}, counted from 0)"
+            )
+        col = {n: values[:, i] for i, n in enumerate(names)}
+        fs = force_sigma if force_sigma is not None else col.get("force_sigma")
+        ms = moment_sigma if moment_sigma is not None else col.get("moment_sigma")
+        if fs is None or ms is None:
+            raise ValueError(f"{path}: force_sigma and moment_sigma are needed (as columns or arguments)")
+        return cls(
+            col["force"],
+            col["moment"],
+            col["kappa"],
+            col["tau"],
+            fs,
+            ms,
+            kappa_sigma=col.get("kappa_sigma"),
+            tau_sigma=col.get("tau_sigma"),
+            register=col.get("register"),
+            register_sigma=col.get("register_sigma"),
+            units=units,
+            convention=convention,
+        )
+
+    def to_csv(self, path: str | Path | None = None, *, comment: str | None = None) -> str:
+        """Write the data as CSV (header line, units line, one row per helix; values with
+        17 significant digits, so a round trip is exact).  Returns the text; writes it to
+        `path` when given."""
+        names = [n for n in CSV_COLUMNS if getattr(self, n) is not None]
+        out = io.StringIO()
+        out.write("# helixrod HelixData: F = n.a and M = m.a along the helix axis a = u/|u| (DESIGN.md)\n")
+        if comment:
+            for line in comment.splitlines():
+                out.write(f"# {line}\n")
+        writer = csv.writer(out, lineterminator="\n")
+        writer.writerow(names)
+        writer.writerow([self.units.get(n, "-") or "-" for n in names])
+        cols = np.stack([np.asarray(getattr(self, n)) for n in names], axis=1)
+        for row in cols:
+            writer.writerow([repr(float(v)) for v in row])
+        text = out.getvalue()
+        if path is not None:
+            Path(path).write_text(text)
+        return text
+
+
+def _noise_scale(x, noise):
+    return noise * (np.sqrt(np.mean(np.square(x))) if np.size(x) else 1.0)
+
+
+def synthetic_helix_data(
+    rod: Rod,
+    kappa: ArrayLike,
+    tau: ArrayLike,
+    noise: float | tuple[float, float],
+    key: Array,
+    *,
+    branch: str = "min-energy",
+    units: dict | None = None,
+) -> HelixData:
+    """Simulated measurements of `rod` at the helices `(kappa, tau)` (1-D, broadcast).
+
+    The exact axial force and moment of one register per helix (`branch`: `"min-energy"`,
+    slot 0 of `helix_equilibria`, the global energy minimum on the circle; `"random"`, a
+    valid register drawn uniformly with `key`) plus Gaussian noise of standard deviation
+    `noise` times the root-mean-square of the exact values (a pair `(sigma_F, sigma_M)` sets
+    absolute deviations instead).  The data's sigmas are the noise levels used; `noise = 0`
+    gives exact data with sigma = the RMS values (unit relative weights), so fits work
+    unchanged.  The registers are stored in `register` (with no `register_sigma`, so a fit
+    ignores them unless asked).  Not jit-able (it returns validated `HelixData`).
+    """
+    kappa = jnp.asarray(kappa, jnp.result_type(float))
+    tau = jnp.asarray(tau, jnp.result_type(float))
+    kappa, tau = jnp.broadcast_arrays(jnp.atleast_1d(kappa), jnp.atleast_1d(tau))
+    eq = helix_equilibria(rod, kappa, tau)
+    key_branch, key_f, key_m = jax.random.split(key, 3)
+    if branch == "min-energy":
+        slot = jnp.zeros(kappa.shape, int)
+    elif branch == "random":
+        logits = jnp.where(eq.valid, 0.0, -jnp.inf)
+        slot = jax.random.categorical(key_branch, logits, axis=-1)
+    else:
+        raise ValueError(f"branch must be 'min-energy' or 'random', got {branch!r}")
+
+    def pick(x):
+        return np.asarray(jnp.take_along_axis(x, slot[:, None], axis=1)[:, 0])
+
+    F, M, phi = pick(eq.force), pick(eq.moment), pick(eq.phi)
+    if not (np.all(np.isfinite(F)) and np.all(np.isfinite(M))):
+        raise ValueError("synthetic_helix_data: some helices have no register (kappa must be > 0 and finite)")
+    if isinstance(noise, tuple):
+        sigma_f, sigma_m = float(noise[0]), float(noise[1])
+        zero = sigma_f == 0 and sigma_m == 0
+    else:
+        sigma_f, sigma_m = _noise_scale(F, float(noise)), _noise_scale(M, float(noise))
+        zero = float(noise) == 0
+    if zero:
+        sigma_f, sigma_m = _noise_scale(F, 1.0), _noise_scale(M, 1.0)
+        F_obs, M_obs = F, M
+    else:
+        if sigma_f <= 0 or sigma_m <= 0 or not (math.isfinite(sigma_f) and math.isfinite(sigma_m)):
+            raise ValueError(f"noise must be >= 0 and finite, got {noise}")
+        F_obs = F + sigma_f * np.asarray(jax.random.normal(key_f, F.shape))
+        M_obs = M + sigma_m * np.asarray(jax.random.normal(key_m, M.shape))
+    return HelixData(F_obs, M_obs, np.asarray(kappa), np.asarray(tau), sigma_f, sigma_m, register=phi, units=units)

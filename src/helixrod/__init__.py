@@ -28,5 +28,14 @@ from ._geometry import (
 from ._load import LoadedHelices as LoadedHelices, helices_under_load as helices_under_load
 from ._rod import Rod as Rod, section_scales as section_scales
 from ._roots import register_roots as register_roots
+from ._sweep import (
+    Sensitivity as Sensitivity,
+    SweepResult as SweepResult,
+    load_sweep as load_sweep,
+    save_sweep as save_sweep,
+    sensitivity as sensitivity,
+    sweep as sweep,
+)
+from . import plot as plot
 
 __version__ = importlib.metadata.version("helixrod")

@@ -198,10 +198,30 @@ def test_every_figure_renders(atlas, sens, tmp_path):
         plot.plot_stable_wrench(atlas, tmp_path / "wrench.png"),
         plot.plot_sensitivity(sens, tmp_path / "sens.png", parameters=("K13", "uhat1")),
         plot.plot_helix(1.0, 0.5, tmp_path / "helix.png"),
-        plot.plot_hyperboloid(ROD, tmp_path / "hyperboloid.png", radii=(0.8,)),
-    ]
+        plot.plot_sweep_summary(atlas, tmp_path / "summary.png"),
+    ]  # plot_hyperboloid (30 s of eager solves) is rendered by tests/test_cli.py
     for p in paths:
         assert Path(p).stat().st_size > 10_000
         assert Path(p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(ValueError, match="stable_force"):
         plot.plot_stable_wrench(hr.SweepResult(ROD, KAPPA, TAU, {"count": atlas["count"]}))
+
+
+def test_cli_sweep(atlas, tmp_path):
+    from typer.testing import CliRunner
+
+    from helixrod.cli import app
+
+    args = ["sweep", "--rod", "1,1.7,0.9,0.3,-0.2", "--uhat", "0.8,0.3,0.4", "--kappa", "0:3:20", "--tau", "-3:3:30",
+            "--fields", ",".join(FIELDS), "--chunk-size", "512",  # the atlas fixture's compile is reused
+            "--out", str(tmp_path / "a.npz"), "--plot", str(tmp_path / "a.png"), "--no-progress"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "swept 600 helices" in result.output
+    back = hr.load_sweep(tmp_path / "a.npz")
+    assert back["count"].shape == (20, 30)
+    expect = reference(ROD, back.kappa[::4, None], back.tau[None, ::3])  # 5 x 10 points
+    np.testing.assert_array_equal(back["count"][::4, ::3], expect.count)
+    assert (tmp_path / "a.png").stat().st_size > 10_000
+    bad = CliRunner().invoke(app, ["sweep", "--fields", "force,nope"])
+    assert bad.exit_code != 0 and "valid fields" in bad.output

@@ -248,21 +248,28 @@ def plot_helix(kappa, tau, path=None, *, turns=3.0, samples=600):
     return _finish(fig, path)
 
 
+def plot_sweep_summary(result, path=None):
+    """The count atlas of a `sweep` result, with the stable-branch force and moment maps
+    beside it when the result holds `stable_force` and `stable_moment`."""
+    _need(result, "count")
+    wrench = "stable_force" in result and "stable_moment" in result
+    fig, axes = _figure(3 if wrench else 1)
+    _draw_atlas(axes[0], result)
+    if wrench:
+        _draw_map(fig, axes[1], result.tau, result.kappa, result["stable_force"], "stable branch: axial force", "$F$")
+        _draw_map(fig, axes[2], result.tau, result.kappa, result["stable_moment"], "stable branch: axial moment", "$M$")
+    return _finish(fig, path)
+
+
+#: The fields `plot_sweep_summary` draws.
+SUMMARY_FIELDS = ("count", "stable_count", "continuum", "stable_force", "stable_moment")
+
+
 def plot_rod_atlas(rod, path=None, *, kappa=(0.0, 3.0), tau=(-3.0, 3.0), n=241, progress=False):
-    """Sweep `rod` over an `n` x `n` grid of `kappa` x `tau` ranges and draw the count
-    atlas beside the stable-branch force and moment maps (three panels).  Used by
+    """Sweep `rod` over an `n` x `n` grid of the `kappa` x `tau` ranges and draw
+    `plot_sweep_summary` (count atlas, stable-branch force and moment).  Used by
     `helixrod demo`."""
     from ._sweep import sweep
 
-    result = sweep(
-        rod,
-        np.linspace(*kappa, n),
-        np.linspace(*tau, n),
-        fields=("count", "stable_count", "continuum", "stable_force", "stable_moment"),
-        progress=progress,
-    )
-    fig, axes = _figure(3)
-    _draw_atlas(axes[0], result)
-    _draw_map(fig, axes[1], result.tau, result.kappa, result["stable_force"], "stable branch: axial force", "$F$")
-    _draw_map(fig, axes[2], result.tau, result.kappa, result["stable_moment"], "stable branch: axial moment", "$M$")
-    return _finish(fig, path)
+    result = sweep(rod, np.linspace(*kappa, n), np.linspace(*tau, n), fields=SUMMARY_FIELDS, progress=progress)
+    return plot_sweep_summary(result, path)

@@ -12,4 +12,5 @@ from ._plot import (
     plot_rod_atlas as plot_rod_atlas,
     plot_sensitivity as plot_sensitivity,
     plot_stable_wrench as plot_stable_wrench,
+    plot_sweep_summary as plot_sweep_summary,
 )

@@ -63,18 +63,18 @@ def _check_fields(fields) -> tuple[str, ...]:
     return tuple(dict.fromkeys(fields))  # unique, in the order asked
 
 
-def _check_axis(name, x) -> np.ndarray:
+def _check_axis(name, x, caller="sweep") -> np.ndarray:
     x = np.asarray(x, dtype=np.float64)
     if x.ndim != 1 or x.size == 0:
-        raise ValueError(f"sweep: {name} must be a non-empty 1-D grid axis, got shape {x.shape}")
+        raise ValueError(f"{caller}: {name} must be a non-empty 1-D grid axis, got shape {x.shape}")
     return x
 
 
-def _check_rod(rod) -> None:
+def _check_rod(rod, caller="sweep") -> None:
     if not isinstance(rod, Rod):
-        raise ValueError(f"sweep: rod must be a helixrod.Rod, got {type(rod).__name__}")
+        raise ValueError(f"{caller}: rod must be a helixrod.Rod, got {type(rod).__name__}")
     if jnp.shape(rod.K1) != ():
-        raise ValueError(f"sweep: rod must be a single rod (batch shape ()), got batch shape {jnp.shape(rod.K1)}")
+        raise ValueError(f"{caller}: rod must be a single rod (batch shape ()), got batch shape {jnp.shape(rod.K1)}")
 
 
 def _equilibrium_fields(rod: Rod, kappa, tau, fields: tuple[str, ...]) -> dict:
@@ -112,9 +112,9 @@ def _mesh(devices) -> Mesh:
 
 @functools.lru_cache(maxsize=64)
 def _chunk_function(point_fn: Callable, devices: tuple, chunk: int) -> Callable:
-    """Jitted `(rod, kappa_axis, tau_axis, offset) -> dict` evaluating grid points
-    `offset ... offset + chunk - 1` (row-major over (kappa, tau), the tail clipped to the
-    last point), sharded over `devices`: each device builds and solves its own slice of
+    """Jitted `(rod, kappa_axis, tau_axis, n_tau, last, offset) -> dict` evaluating the
+    grid points `offset ... offset + chunk - 1` (row-major over (kappa, tau); indices past
+    `last` are clipped to it; `n_tau` is the true length of the padded tau axis), sharded over `devices`: each device builds and solves its own slice of
     indices, so nothing but the results crosses between devices or to the host."""
     mesh = _mesh(devices)
     local = chunk // len(devices)
@@ -461,9 +461,9 @@ def sensitivity(
     slots are NaN.  Streams and shards exactly as `sweep`.  Returns a `Sensitivity`.
     """
     wrt = _check_wrt(wrt)
-    _check_rod(rod)
-    kappa = _check_axis("kappa", kappa)
-    tau = _check_axis("tau", tau)
+    _check_rod(rod, "sensitivity")
+    kappa = _check_axis("kappa", kappa, "sensitivity")
+    tau = _check_axis("tau", tau, "sensitivity")
     p = len(wrt)
     trailing = {
         "force": ((4,), np.float64),

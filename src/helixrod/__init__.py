@@ -57,5 +57,14 @@ from ._fit import (
 )
 # -- end issue 4 --
 from ._roots import register_roots as register_roots
+from ._sweep import (
+    Sensitivity as Sensitivity,
+    SweepResult as SweepResult,
+    load_sweep as load_sweep,
+    save_sweep as save_sweep,
+    sensitivity as sensitivity,
+    sweep as sweep,
+)
+from . import plot as plot
 
 __version__ = importlib.metadata.version("helixrod")

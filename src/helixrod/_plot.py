@@ -102,3 +102,209 @@ def plot_fit(data, fit, path):
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+# -- the kappa-tau atlas (issue 5) --------------------------------------------------------
+# These figures use matplotlib's object-oriented API (`matplotlib.figure.Figure`), never
+# pyplot, so they neither need nor change a backend (safe in notebooks and threads).
+# Each takes `path=None`: with a path the figure is written (PNG/PDF/SVG by suffix) and
+# the path returned, otherwise the `Figure` is returned.  Categorical colours are
+# Okabe-Ito; continuous maps are cividis (sequential) or PuOr (diverging), both readable
+# with colour-vision deficiency.
+
+_COUNT_CLASSES = (
+    # (label, colour) for: no register, continuum, 2 registers, 3 (tangent), 4 registers.
+    ("no helix ($\\kappa = 0$)", "#DDDDDD"),
+    ("continuum", OKABE_ITO[2]),
+    ("2 registers, 1 stable", OKABE_ITO[5]),
+    ("3 registers (fold)", OKABE_ITO[7]),
+    ("4 registers, 2 stable", OKABE_ITO[4]),
+)
+
+
+def _figure(ncols=1, nrows=1, *, width=4.6, height=3.8, projection=None):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width * ncols, height * nrows), layout="constrained")
+    kw = {} if projection is None else {"projection": projection}
+    axes = [fig.add_subplot(nrows, ncols, i + 1, **kw) for i in range(nrows * ncols)]
+    return fig, axes
+
+
+def _finish(fig, path):
+    if path is None:
+        return fig
+    fig.savefig(path, dpi=150)
+    return path
+
+
+def _need(result, *names):
+    missing = [n for n in names if n not in result]
+    if missing:
+        raise ValueError(f"this figure needs the sweep fields {list(names)}; missing {missing} (pass fields=... to sweep)")
+
+
+def _count_class(result):
+    count = np.asarray(result["count"])
+    cls = np.select([count == 0, count == 1, count == 2, count == 3, count == 4], [0, 1, 2, 3, 4], 0)
+    if "continuum" in result:
+        cls = np.where(np.asarray(result["continuum"]), 1, cls)
+    return cls
+
+
+def _draw_atlas(ax, result):
+    from matplotlib.colors import BoundaryNorm, ListedColormap
+    from matplotlib.patches import Patch
+
+    cls = _count_class(result)
+    cmap = ListedColormap([c for _, c in _COUNT_CLASSES])
+    norm = BoundaryNorm(np.arange(-0.5, 5.5), cmap.N)
+    ax.pcolormesh(result.tau, result.kappa, cls, cmap=cmap, norm=norm, shading="nearest", rasterized=True)
+    if "stable_count" in result:
+        # Outline the multistable region (two stable registers at one helix).
+        multi = (np.asarray(result["stable_count"]) >= 2).astype(float)
+        if 0 < multi.mean() < 1:
+            ax.contour(result.tau, result.kappa, multi, levels=[0.5], colors=[OKABE_ITO[1]], linewidths=1.2)
+    present = sorted(set(np.unique(cls).tolist()))
+    handles = [Patch(facecolor=_COUNT_CLASSES[i][1], edgecolor="k", lw=0.4, label=_COUNT_CLASSES[i][0]) for i in present]
+    if "stable_count" in result and (np.asarray(result["stable_count"]) >= 2).any():
+        handles.append(Patch(facecolor="none", edgecolor=OKABE_ITO[1], label="bistable boundary"))
+    ax.legend(handles=handles, loc="upper left", fontsize=7, framealpha=0.9)
+    ax.set_xlabel("torsion $\\tau$")
+    ax.set_ylabel("curvature $\\kappa$")
+    ax.set_title("equilibria per helix")
+
+
+def _robust_limit(values, q=98.0):
+    finite = np.abs(values[np.isfinite(values)])
+    return float(np.percentile(finite, q)) if finite.size else 1.0
+
+
+def _draw_map(fig, ax, x, y, values, title, label, *, diverging=True, zero_line=True):
+    from matplotlib.colors import Normalize
+
+    values = np.asarray(values, dtype=float)
+    lim = _robust_limit(values) or 1.0
+    if diverging:
+        norm, cmap = Normalize(-lim, lim), "PuOr_r"
+    else:
+        finite = values[np.isfinite(values)]
+        norm, cmap = Normalize(np.min(finite) if finite.size else 0, lim), "cividis"
+    mesh = ax.pcolormesh(x, y, values, cmap=cmap, norm=norm, shading="nearest", rasterized=True)
+    pass  # NaN cells stay transparent (white background)
+    if zero_line and np.nanmin(values) < 0 < np.nanmax(values):
+        ax.contour(x, y, np.nan_to_num(values), levels=[0.0], colors="k", linewidths=0.8)
+    fig.colorbar(mesh, ax=ax, label=label, extend="both")
+    ax.set_title(title)
+    ax.set_xlabel("torsion $\\tau$")
+    ax.set_ylabel("curvature $\\kappa$")
+
+
+def plot_atlas(result, path=None):
+    """Equilibrium-count atlas of a `sweep` result over the $(\\tau, \\kappa)$ plane: the
+    number of registers per helix (Okabe-Ito classes), the bistable region (two stable
+    registers) outlined.  Needs the field `count` (`stable_count`, `continuum` used when
+    present)."""
+    _need(result, "count")
+    fig, (ax,) = _figure()
+    _draw_atlas(ax, result)
+    return _finish(fig, path)
+
+
+def plot_stable_wrench(result, path=None):
+    """Axial force $F$ and moment $M$ of the stable branch (the stable register of least
+    energy) over the $(\\tau, \\kappa)$ plane, colour clipped at the 98th percentile of
+    $|F|$, $|M|$ (both diverge like $1/\\kappa$ for a curved rod); black: $F = 0$, $M = 0$.
+    Needs the fields `stable_force`, `stable_moment`."""
+    _need(result, "stable_force", "stable_moment")
+    fig, axes = _figure(2)
+    _draw_map(fig, axes[0], result.tau, result.kappa, result["stable_force"], "stable branch: axial force", "$F$")
+    _draw_map(fig, axes[1], result.tau, result.kappa, result["stable_moment"], "stable branch: axial moment", "$M$")
+    return _finish(fig, path)
+
+
+def plot_sensitivity(sens, path=None, *, quantity="force_elasticity", slot=0, parameters=None):
+    """Maps of one `sensitivity` output (default the force elasticity
+    $(\\theta/F)\\,\\partial F/\\partial\\theta$) of register `slot` (0: the global energy
+    minimum, the stable branch) for each parameter in `parameters` (default all)."""
+    if quantity not in sens:
+        raise ValueError(f"unknown quantity {quantity!r}; valid are {list(sens)}")
+    parameters = sens.wrt if parameters is None else tuple(parameters)
+    ncols = min(4, len(parameters))
+    nrows = -(-len(parameters) // ncols)
+    fig, axes = _figure(ncols, nrows, width=3.6, height=3.0)
+    symbol = {"force_elasticity": "(\\theta/F)\\,\\partial F/\\partial\\theta",
+              "moment_elasticity": "(\\theta/M)\\,\\partial M/\\partial\\theta",
+              "d_force": "\\partial F/\\partial\\theta", "d_moment": "\\partial M/\\partial\\theta",
+              "d_phi": "\\partial\\varphi/\\partial\\theta"}.get(quantity, quantity)
+    for ax, name in zip(axes, parameters):
+        values = sens.of(name, quantity)[..., slot]
+        _draw_map(fig, ax, sens.tau, sens.kappa, values, f"$\\theta = {_tex_parameter(name)}$", f"${symbol}$")
+    for ax in axes[len(parameters):]:
+        ax.set_visible(False)
+    return _finish(fig, path)
+
+
+def _tex_parameter(name):
+    if name.startswith("uhat"):
+        return f"\\hat u_{name[-1]}"
+    return f"K_{{{name[1:]}}}"
+
+
+def plot_helix(kappa, tau, path=None, *, turns=3.0, samples=600):
+    """The centreline of the helix of curvature `kappa` > 0 and torsion `tau` in 3D
+    (`helix_centreline`, axis $e_z$), `turns` turns long, coloured by arc length, with
+    its axis dashed."""
+    import jax.numpy as jnp
+    from matplotlib import colormaps
+
+    from ._geometry import helix_centreline
+
+    if not kappa > 0:
+        raise ValueError(f"plot_helix needs kappa > 0, got {kappa}")
+    norm_u = float(np.hypot(kappa, tau))
+    s = np.linspace(0.0, turns * 2 * np.pi / norm_u, samples)
+    x = np.asarray(helix_centreline(jnp.asarray(kappa, float), jnp.asarray(tau, float), jnp.asarray(s)))
+    fig, (ax,) = _figure(width=4.8, height=4.8, projection="3d")
+    colours = colormaps["cividis"](np.linspace(0, 1, samples - 1))
+    for i in range(0, samples - 1, 3):
+        ax.plot(x[i : i + 4, 0], x[i : i + 4, 1], x[i : i + 4, 2], color=colours[i], lw=2.2)
+    ax.plot([0, 0], [0, 0], [x[0, 2], x[-1, 2]], ls="--", color=OKABE_ITO[7], lw=1)
+    r = float(kappa) / norm_u**2
+    span = max(r, abs(x[-1, 2] - x[0, 2]) / 2)
+    mid = 0.5 * (x[0, 2] + x[-1, 2])
+    ax.set_xlim(-span, span)
+    ax.set_ylim(-span, span)
+    ax.set_zlim(mid - span, mid + span)
+    ax.set_box_aspect((1, 1, 1))
+    ax.set_xlabel("$x$")
+    ax.set_ylabel("$y$")
+    ax.set_zlabel("$z$")
+    ax.set_title(f"helix $\\kappa = {kappa:g}$, $\\tau = {tau:g}$ (radius {r:.3g}, pitch {2 * np.pi * float(tau) / norm_u**2:.3g})", fontsize=9)
+    return _finish(fig, path)
+
+
+def plot_sweep_summary(result, path=None):
+    """The count atlas of a `sweep` result, with the stable-branch force and moment maps
+    beside it when the result holds `stable_force` and `stable_moment`."""
+    _need(result, "count")
+    wrench = "stable_force" in result and "stable_moment" in result
+    fig, axes = _figure(3 if wrench else 1)
+    _draw_atlas(axes[0], result)
+    if wrench:
+        _draw_map(fig, axes[1], result.tau, result.kappa, result["stable_force"], "stable branch: axial force", "$F$")
+        _draw_map(fig, axes[2], result.tau, result.kappa, result["stable_moment"], "stable branch: axial moment", "$M$")
+    return _finish(fig, path)
+
+
+#: The fields `plot_sweep_summary` draws.
+SUMMARY_FIELDS = ("count", "stable_count", "continuum", "stable_force", "stable_moment")
+
+
+def plot_rod_atlas(rod, path=None, *, kappa=(0.0, 3.0), tau=(-3.0, 3.0), n=241, progress=False):
+    """Sweep `rod` over an `n` x `n` grid of the `kappa` x `tau` ranges and draw
+    `plot_sweep_summary` (count atlas, stable-branch force and moment).  Used by
+    `helixrod demo`."""
+    from ._sweep import sweep
+
+    result = sweep(rod, np.linspace(*kappa, n), np.linspace(*tau, n), fields=SUMMARY_FIELDS, progress=progress)
+    return plot_sweep_summary(result, path)

@@ -56,6 +56,88 @@ def demo(out: Path = typer.Option(Path("helixrod_demo"), help="directory for the
     out.mkdir(parents=True, exist_ok=True)
     path = plot_hyperboloid(rod, out / "hyperboloid.png", u3_slice=1.5, radii=(1.0, 3.0), extent=4.0)
     console.print(f"wrote {path}")
+    # -- the kappa-tau atlas (issue 5) --
+    from ._plot import plot_rod_atlas
+
+    path = plot_rod_atlas(rod, out / "atlas.png", n=161)
+    console.print(f"wrote {path} (equilibria per helix and the stable branch's force and moment over kappa, tau)")
+
+
+# -- helixrod sweep (issue 5) ---------------------------------------------------------------
+def _numbers(text: str, name: str, sizes: tuple[int, ...]) -> list[float]:
+    try:
+        values = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise typer.BadParameter(f"{name} must be comma-separated numbers, got {text!r}") from None
+    if len(values) not in sizes:
+        raise typer.BadParameter(f"{name} takes {' or '.join(map(str, sizes))} numbers, got {len(values)}")
+    return values
+
+
+def _grid_axis(text: str, name: str):
+    import numpy as np
+
+    parts = text.split(":")
+    try:
+        start, stop, num = float(parts[0]), float(parts[1]), int(parts[2])
+    except (ValueError, IndexError):
+        raise typer.BadParameter(f"{name} must be start:stop:num, e.g. 0:3:1000, got {text!r}") from None
+    if len(parts) != 3 or num < 1:
+        raise typer.BadParameter(f"{name} must be start:stop:num with num >= 1, got {text!r}")
+    return np.linspace(start, stop, num)
+
+
+@app.command(name="sweep")
+def sweep_command(
+    rod: str = typer.Option("1,1.5,0.8,0.5,0.5", help="K1,K2,K3[,K13,K23]"),
+    uhat: str = typer.Option("1,0,0", help="intrinsic twist u1,u2,u3"),
+    kappa: str = typer.Option("0:3:1000", help="curvature axis start:stop:num"),
+    tau: str = typer.Option("-3:3:1000", help="torsion axis start:stop:num (write --tau=-3:3:1000)"),
+    fields: str = typer.Option("force,moment,stable,count", help="comma-separated sweep fields"),
+    out: Path | None = typer.Option(None, help="write the result to this .npz (load_sweep reads it)"),
+    plot: Path | None = typer.Option(None, help="write the atlas figure (PNG/PDF/SVG)"),
+    chunk_size: int | None = typer.Option(None, help="points per chunk (default 65536 per device)"),
+    progress: bool | None = typer.Option(None, "--progress/--no-progress", help="progress bar (default: on a terminal)"),
+) -> None:
+    """Sweep the kappa-tau plane: registers, stability and wrench of every uniform helix."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import time
+
+    import numpy as np
+    from rich.console import Console
+
+    from . import Rod, save_sweep, sweep
+    from ._plot import SUMMARY_FIELDS, plot_sweep_summary
+
+    console = Console()
+    K = _numbers(rod, "--rod", (3, 5))
+    the_rod = Rod(*K, uhat=_numbers(uhat, "--uhat", (3,)))
+    names = tuple(f.strip() for f in fields.split(",") if f.strip())
+    if plot is not None:
+        names += tuple(f for f in SUMMARY_FIELDS if f not in names)
+    k_axis, t_axis = _grid_axis(kappa, "--kappa"), _grid_axis(tau, "--tau")
+    start = time.perf_counter()
+    try:
+        result = sweep(the_rod, k_axis, t_axis, fields=names, chunk_size=chunk_size, progress=progress)
+    except ValueError as error:
+        raise typer.BadParameter(str(error)) from None
+    seconds = time.perf_counter() - start
+    points = k_axis.size * t_axis.size
+    console.print(
+        f"swept {points} helices in {seconds:.2f} s ({points / seconds:.3g} points/s, compile included) "
+        f"on {len(jax.local_devices())} device(s)"
+    )
+    if "count" in result:
+        values, counts = np.unique(result["count"], return_counts=True)
+        console.print("registers per helix: " + ", ".join(f"{v}: {c / points:.1%}" for v, c in zip(values, counts)))
+    if out is not None:
+        save_sweep(out, result)
+        console.print(f"wrote {out}")
+    if plot is not None:
+        plot_sweep_summary(result, plot)
+        console.print(f"wrote {plot}")
 
 
 # -- inverse spring problem (issue 4) ------------------------------------------------------

@@ -1,0 +1,16 @@
+"""Figures of helixrod (matplotlib): ``from helixrod import plot``.
+
+Every function takes ``path=None``: with a path the figure is written and the path
+returned, otherwise the ``matplotlib.figure.Figure`` is returned.
+"""
+
+from ._plot import (
+    OKABE_ITO as OKABE_ITO,
+    plot_atlas as plot_atlas,
+    plot_helix as plot_helix,
+    plot_hyperboloid as plot_hyperboloid,
+    plot_rod_atlas as plot_rod_atlas,
+    plot_sensitivity as plot_sensitivity,
+    plot_stable_wrench as plot_stable_wrench,
+    plot_sweep_summary as plot_sweep_summary,
+)

@@ -29,4 +29,9 @@ from ._load import LoadedHelices as LoadedHelices, helices_under_load as helices
 from ._rod import Rod as Rod, section_scales as section_scales
 from ._roots import register_roots as register_roots
 
+# DNA tweezers and spring mechanics (issue 6)
+from . import dna as dna
+from ._datasets import SpringExample as SpringExample, load_spring_example as load_spring_example
+from ._spring import effective_moduli as effective_moduli, spring_compliance as spring_compliance
+
 __version__ = importlib.metadata.version("helixrod")

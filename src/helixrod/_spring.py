@@ -23,6 +23,8 @@ reciprocity) for every rod; the tests check this on random anisotropic, coupled 
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -36,49 +38,61 @@ from ._rod import Rod
 _REGISTER_TOLERANCE = 1e-6
 
 
-def _branch_wrench(rod: Rod, kappa, tau, slot):
-    eq = helix_equilibria(rod, kappa, tau)
-    return jnp.stack([eq.force[slot], eq.moment[slot]])
+def _wrench_all_slots(rod: Rod, x):
+    """(F, M) of every register slot at (kappa, tau) = x, shape (4, 2); registers as aux."""
+    eq = helix_equilibria(rod, x[0], x[1])
+    return jnp.stack([eq.force, eq.moment], axis=-1), (eq.phi, eq.valid, eq.continuum)
 
 
-def _observables(kappa, tau, length):
-    height, turns = height_and_turns(kappa, tau, length)
+def _observables(x, length):
+    height, turns = height_and_turns(x[0], x[1], length)
     return jnp.stack([height, 2 * jnp.pi * turns])
 
 
 def _single_compliance(rod: Rod, u, length):
     """Compliance and a flag `ok` for one unbatched rod and one twist vector."""
-    kappa = jnp.hypot(u[0], u[1])
-    tau = u[2]
+    x = jnp.stack([jnp.hypot(u[0], u[1]), u[2]])
+    # One pass: the Jacobian of every slot's wrench (registers move by the implicit function
+    # theorem inside helix_equilibria), with the registers themselves as aux.
+    jac_all, (phis, valid, continuum) = jax.jacfwd(lambda y: _wrench_all_slots(rod, y), has_aux=True)(x)
     # Which register slot is u on?  Angular distance to every valid root (a discrete
     # choice: no gradient flows through it).
     frozen = jax.lax.stop_gradient(u)
-    phi = jnp.arctan2(frozen[0], frozen[1])
-    eq = helix_equilibria(jax.lax.stop_gradient(rod), jnp.hypot(frozen[0], frozen[1]), frozen[2])
-    delta = eq.phi - phi
-    gap = jnp.abs(jnp.arctan2(jnp.sin(delta), jnp.cos(delta)))
-    gap = jnp.where(eq.valid, gap, jnp.inf)
-    slot = jnp.argmin(gap)
-    on_register = (gap[slot] <= _REGISTER_TOLERANCE) | eq.continuum
-    slot = jnp.where(eq.continuum, 0, slot)
-    x = jnp.stack([kappa, tau])
-    wrench_jac = jax.jacfwd(lambda y: _branch_wrench(rod, y[0], y[1], slot))(x)
-    obs_jac = jax.jacfwd(lambda y: _observables(y[0], y[1], length))(x)
+    delta = jax.lax.stop_gradient(phis) - jnp.arctan2(frozen[0], frozen[1])
+    gap = jnp.where(valid, jnp.abs(jnp.arctan2(jnp.sin(delta), jnp.cos(delta))), jnp.inf)
+    slot = jnp.where(continuum, 0, jnp.argmin(gap))
+    on_register = (gap[slot] <= _REGISTER_TOLERANCE) | continuum
+    wrench_jac = jac_all[slot]
+    obs_jac = jax.jacfwd(_observables)(x, length)
     finite = jnp.all(jnp.isfinite(wrench_jac)) & jnp.all(jnp.isfinite(obs_jac))
     det = wrench_jac[0, 0] * wrench_jac[1, 1] - wrench_jac[0, 1] * wrench_jac[1, 0]
-    ok = on_register & (kappa > 0) & finite & (det != 0) & jnp.isfinite(length) & (length > 0)
+    ok = on_register & (x[0] > 0) & finite & (det != 0) & jnp.isfinite(length) & (length > 0)
     safe_jac = jnp.where(ok, wrench_jac, jnp.eye(2, dtype=wrench_jac.dtype))
     compliance = obs_jac @ jnp.linalg.inv(safe_jac)
     return jnp.where(ok, compliance, jnp.nan), ok
 
 
-def _broadcast_rod(rod: Rod, batch):
+# Compiled once per padded batch size and shared by every call (eager calls of any batch
+# up to 128 reuse one executable: compiling helix_equilibria twice over is the slow part).
+_compliance_kernel = jax.jit(jax.vmap(_single_compliance))
+
+
+def _padded_size(n: int) -> int:
+    return 128 if n <= 128 else -(-n // 1024) * 1024
+
+
+def _broadcast_rod(rod: Rod, batch, size):
     nb = rod.K1.ndim
 
     def grow(x):
-        return jnp.broadcast_to(x, batch + x.shape[nb:]).reshape((-1,) + x.shape[nb:])
+        flat = jnp.broadcast_to(x, batch + x.shape[nb:]).reshape((-1,) + x.shape[nb:])
+        return jnp.concatenate([flat, jnp.broadcast_to(flat[:1], (size - flat.shape[0],) + flat.shape[1:])])
 
     return jax.tree_util.tree_map(grow, rod)
+
+
+def _is_concrete(tree) -> bool:
+    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
 
 
 def _batched_compliance(rod: Rod, u, length):
@@ -93,11 +107,18 @@ def _batched_compliance(rod: Rod, u, length):
         raise ValueError(
             f"u batch {u.shape[:-1]}, length {length.shape} and rod batch {rod.K1.shape} do not broadcast"
         ) from None
-    flat_u = jnp.broadcast_to(u, batch + (3,)).reshape(-1, 3)
-    flat_len = jnp.broadcast_to(length, batch).reshape(-1)
-    flat_rod = _broadcast_rod(rod, batch)
-    compliance, ok = jax.vmap(_single_compliance)(flat_rod, flat_u, flat_len)
-    return compliance.reshape(batch + (2, 2)), ok.reshape(batch), u
+    count = math.prod(batch)
+    if count == 0:
+        return jnp.zeros(batch + (2, 2), dtype), jnp.zeros(batch, bool), u
+    # Pad eager calls to a bucket size (rows repeat the first point); traced calls inline.
+    size = _padded_size(count) if _is_concrete((rod, u, length)) else count
+
+    def pad(x, tail):
+        flat = jnp.broadcast_to(x, batch + tail).reshape((-1,) + tail)
+        return jnp.concatenate([flat, jnp.broadcast_to(flat[:1], (size - count,) + tail)])
+
+    compliance, ok = _compliance_kernel(_broadcast_rod(rod, batch, size), pad(u, (3,)), pad(length, ()))
+    return compliance[:count].reshape(batch + (2, 2)), ok[:count].reshape(batch), u
 
 
 _MESSAGE = (

@@ -55,6 +55,10 @@ def test_bdna_geometry_hand_values():
     np.testing.assert_allclose([float(b) for b in back], [0.28, 11.0, 0.9], rtol=1e-14)
     with pytest.raises(ValueError, match="rise"):
         dna.helix_from_bdna(rise=-0.34)
+    # Traced: the bad point is NaN, the good one untouched.
+    k, t, ell = jax.jit(dna.helix_from_bdna)(jnp.array([0.34, -0.34]))
+    assert np.isfinite(k[0]) and np.isnan(k[1]) and np.isnan(ell[1])
+    assert np.isnan(jax.jit(dna.kT)(jnp.array([300.0, -1.0]))[1])
 
 
 # -- observables <-> helix -----------------------------------------------------------------

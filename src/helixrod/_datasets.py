@@ -131,8 +131,8 @@ def load_tweezer_example() -> TweezerExample:
         tau_sigma=jnp.asarray(c["tau_sigma"]),
         kappa_tau_correlation=jnp.asarray(c["kappa_tau_correlation"]),
         rod=Rod(K1, K2, K3, K13, K23, (u1, u2, u3)),
-        length_per_bp=jnp.asarray(float(meta["length_per_bp"])),
-        moduli=(jnp.asarray(S), jnp.asarray(C), jnp.asarray(g)),
+        length_per_bp=jnp.asarray(float(meta["length_per_bp"]), jnp.result_type(float)),
+        moduli=tuple(jnp.asarray(x, jnp.result_type(float)) for x in (S, C, g)),
         provenance=_provenance(meta),
     )
 

@@ -44,7 +44,8 @@ def _is_concrete(*xs) -> bool:
 
 
 def _require(ok, message: str, *values):
-    """Raise ValueError when concrete inputs break `ok`; traced inputs pass (NaN-flagged)."""
+    """Raise ValueError when concrete inputs break `ok`; traced inputs are not raised on
+    (the caller returns NaN there, so one bad point in a batch spoils nothing else)."""
     if _is_concrete(ok, *values):
         bad = ~np.asarray(ok)
         if bad.any():
@@ -58,8 +59,9 @@ def kT(temperature: ArrayLike = ROOM_TEMPERATURE, unit: str = "pN nm") -> Array:
     $k_B T$ = 4.114 pN nm at 298.15 K, 4.047 pN nm at 293.15 K.
     """
     temperature = jnp.asarray(temperature, jnp.result_type(float))
-    _require(jnp.isfinite(temperature) & (temperature > 0), "kT: temperature must be finite and > 0 kelvin", temperature)
-    energy_joule = BOLTZMANN_CONSTANT * temperature
+    ok = jnp.isfinite(temperature) & (temperature > 0)
+    _require(ok, "kT: temperature must be finite and > 0 kelvin", temperature)
+    energy_joule = jnp.where(ok, BOLTZMANN_CONSTANT * temperature, jnp.nan)
     if unit == "J":
         return energy_joule
     if unit == "pN nm":
@@ -97,17 +99,12 @@ def helix_from_bdna(
     """
     dtype = jnp.result_type(float)
     rise, bp_per_turn, radius = (jnp.asarray(x, dtype) for x in (rise, bp_per_turn, radius))
-    _require(
-        (rise > 0) & (bp_per_turn > 0) & (radius > 0) & jnp.isfinite(rise * bp_per_turn * radius),
-        "helix_from_bdna: rise, bp_per_turn and radius must be finite and > 0",
-        rise,
-        bp_per_turn,
-        radius,
-    )
+    ok = (rise > 0) & (bp_per_turn > 0) & (radius > 0) & jnp.isfinite(rise * bp_per_turn * radius)
+    _require(ok, "helix_from_bdna: rise, bp_per_turn and radius must be finite and > 0", rise, bp_per_turn, radius)
     pitch = rise * bp_per_turn / (2 * jnp.pi)
     kappa, tau = curvature_torsion(radius, pitch)
     length_per_bp = jnp.hypot(rise, 2 * jnp.pi * radius / bp_per_turn)
-    return kappa, tau, length_per_bp
+    return tuple(jnp.where(ok, x, jnp.nan) for x in (kappa, tau, length_per_bp))
 
 
 def bdna_from_helix(kappa: ArrayLike, tau: ArrayLike, length_per_bp: ArrayLike) -> tuple[Array, Array, Array]:

@@ -215,35 +215,6 @@ def test_reciprocity_on_constructed_equilibria(rng):
     np.testing.assert_allclose(np.stack([S, g, g, C], -1).reshape(-1, 2, 2), stiffness, rtol=1e-9)
 
 
-@pytest.mark.slow  # compiles helix_equilibria once more (~1 min on 2 busy cores)
-def test_compliance_matches_finite_differences_on_random_rods(rng):
-    """d(F, M)/d(kappa, tau) by central differences of helix_equilibria (slot 0), all
-    points and perturbations in one batched call."""
-    rod = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *random_rods(rng, 3))
-    kappa = np.array([0.8, 1.3, 0.6])
-    tau = np.array([0.7, -0.4, 1.1])
-    step = 1e-6
-    dk = np.array([0.0, step, -step, 0.0, 0.0])[:, None]
-    dt = np.array([0.0, 0.0, 0.0, step, -step])[:, None]
-    eq = hr.helix_equilibria(rod, kappa + dk, tau + dt)  # shape (5, 3, 4)
-    F, M = np.asarray(eq.force[..., 0]), np.asarray(eq.moment[..., 0])
-    wrench_jac = np.stack(
-        [np.stack([F[1] - F[2], F[3] - F[4]], -1), np.stack([M[1] - M[2], M[3] - M[4]], -1)], -2
-    ) / (2 * step)
-    length = 2.0
-    norm = np.hypot(kappa, tau)
-    # d(h, Theta)/d(kappa, tau) of h = L tau/|u|, Theta = L |u|, by hand.
-    obs_jac = np.stack(
-        [
-            np.stack([-length * tau * kappa / norm**3, length * kappa**2 / norm**3], -1),
-            np.stack([length * kappa / norm, length * tau / norm], -1),
-        ],
-        -2,
-    )
-    c = np.asarray(hr.spring_compliance(rod, eq.u[0, :, 0], length))
-    np.testing.assert_allclose(c, obs_jac @ np.linalg.inv(wrench_jac), rtol=1e-6, atol=1e-8)
-
-
 def test_spring_errors_are_flagged():
     # An equilibrium by construction: m = mu1 u + mu2 e3, uhat = u - K^-1 m.
     K = np.array([[1.0, 0.0, 0.5], [0.0, 1.5, 0.5], [0.5, 0.5, 0.8]])

@@ -67,4 +67,9 @@ from ._sweep import (
 )
 from . import plot as plot
 
+# DNA tweezers and spring mechanics (issue 6)
+from . import dna as dna
+from ._datasets import SpringExample as SpringExample, load_spring_example as load_spring_example
+from ._spring import effective_moduli as effective_moduli, spring_compliance as spring_compliance
+
 __version__ = importlib.metadata.version("helixrod")

@@ -13,7 +13,7 @@ the circle by $\\pi/2$), $x = -B/(\\mu + A)$, $y = C/(\\mu - A)$ and the multipl
 the secular equation $B^2/(\\mu + A)^2 + C^2/(\\mu - A)^2 = 1$.  With $\\nu$ the distance of
 $\\mu$ to the nearer pole, each register solves one of four problems of the same form
 
-$$\\frac{Q^2}{\\nu^2} + \\frac{P^2}{(2A + e\\,\\nu)^2} = 1, \\qquad \\nu > 0,$$
+$$\\psi(\\nu) = \\Big(\\frac{Q^2}{\\nu^2} + \\frac{P^2}{(2A + e\\,\\nu)^2}\\Big)^{-1/2} = 1, \\qquad \\nu > 0:$$
 
 * slot 0, the global minimum of $W$ on the circle: $\\mu = -A - \\nu$, $(Q, P, e) = (B, C, +1)$;
 * slot 1, the global maximum: $\\mu = A + \\nu$, $(Q, P, e) = (C, B, +1)$;
@@ -22,27 +22,25 @@ $$\\frac{Q^2}{\\nu^2} + \\frac{P^2}{(2A + e\\,\\nu)^2} = 1, \\qquad \\nu > 0,$$
   $(B, C, -1)$ and $\\mu = A - \\nu$ with $(C, B, -1)$, each on its side of the separator
   $\\nu_s = 2A |Q|^{2/3} / (|B|^{2/3} + |C|^{2/3})$ (the tangent register on the astroid).
 
-On each of these branches $\\psi(\\nu) = (Q^2/\\nu^2 + P^2/(2A + e\\nu)^2)^{-1/2}$ is increasing
-and concave (Moré & Sorensen, SIAM J. Sci. Stat. Comput. 4 (1983) 553, for the outer
-branches; checked numerically for the inner ones), so Newton's method on $\\psi = 1$ started
-left of the root -- at $\\nu_0 = |Q|$, a lower bound of every root, or at the larger outer
-bound $\\sqrt{B^2 + C^2} - 2A$ -- climbs monotonically to it, quadratically once near.  The
-iteration is written over a common denominator, one square root and one division per step:
+On each of these branches $\\psi$ is increasing and concave left of its root (Moré &
+Sorensen, SIAM J. Sci. Stat. Comput. 4 (1983) 553, for the outer branches; checked
+numerically for the inner ones), and explicit lower bounds of every root are known.  So:
 
-$$\\nu \\leftarrow \\nu + \\frac{N(\\sqrt N - \\nu d)}{Q^2 d^3 + e P^2 \\nu^3}, \\qquad d = 2A + e\\nu,
-\\quad N = Q^2 d^2 + P^2 \\nu^2.$$
+* the **fast path** takes `_FAST_ITERATIONS` Halley steps on $\\psi = 1$ (cubic convergence;
+  one square root and one division a step) from those bounds, and decides the inner pair
+  by the sign of the astroid polynomial;
+* the points it leaves unconverged or undecided -- a few in $10^4$ of random coefficients:
+  next to the astroid's cusps, where a root is nearly triple, or next to a tangency -- are
+  gathered a batch at a time and re-solved by the **careful path**: the astroid test by cube
+  roots, and Newton steps, which climb monotonically to the root from the left, until they
+  converge, then one Newton step on $f(\\varphi)$ itself (a rotation of $(x, y)$).
 
 Elementwise arithmetic only (no eigenvalues, no data-dependent control flow in the fast
-path), unchanged on a GPU.  `_FAST_ITERATIONS` steps converge almost everywhere; points
-left unconverged (next to the astroid's cusps, where a root is nearly triple, or next to a
-tangency) are gathered a batch at a time and given `_MORE_ITERATIONS` steps.  A last Newton
-step on $f(\\varphi)$ itself, taken as a rotation of $(x, y)$, brings every simple root to
-full float64 accuracy.  Exact zeros of $B$ or $C$ (the common uncoupled rods) have closed
-forms (`_factorable`).
-
-Registers closer than about $10^{-7}$ (relative to the coefficients) to a tangency cannot be
-told apart in float64: where the astroid test is within `_TANGENT_TOL` of zero one *tangent*
-register -- the separator itself, the extremum of $f$ -- is returned instead of the pair.
+path), unchanged on a GPU.  Exact zeros of $B$ or $C$ (the common uncoupled rods) have
+closed forms (`_factorable`).  Registers closer than about $10^{-7}$ (relative to the
+coefficients) to a tangency cannot be told apart in float64: where the astroid test is
+within `_TANGENT_TOL` of zero one *tangent* register -- the separator itself, the extremum
+of $f$ -- is returned instead of the pair.
 """
 
 from __future__ import annotations
@@ -58,25 +56,27 @@ from ._chunks import map_chunks
 # 3 the local maximum of the inner pair (a tangent register, when there is one, in 2).
 NUM_SLOTS = 4
 
-# Newton steps of the fast path (measured in tests/test_roots.py and
-# benchmarks/bench_equilibria.py: a few points in 10^4 of random coefficients need more),
-# and of the re-solve of the points it leaves unconverged: at an exact cusp the root is
-# triple and Newton converges linearly (ratio 2/3), ~90 steps to round-off.
-_FAST_ITERATIONS = 6
+# Halley steps of the fast path: on random coefficients (normal, or log-uniform over 7
+# decades) and on kappa-tau grids, about 7 points in 10^4 are left to the careful path
+# (tests/test_roots.py measures it).  Newton steps of the careful path at most: at an
+# exact cusp the root is triple and Newton converges linearly (ratio 2/3).
+_FAST_ITERATIONS = 4
 _MORE_ITERATIONS = 128
-# Points re-solved together by the fallback (a while loop takes as many batches as needed).
+# Points re-solved together by the careful path (a while loop takes as many batches as
+# there are unconverged points).
 _FALLBACK_BATCH = 16
-# A root counts as converged when Newton's last step moved nu by at most this, relative:
-# the final Newton step on f(phi) then takes it to round-off (quadratic convergence).
-_STEP_TOL = 1e-12
-_QUADRATIC_TOL = 1e-6
-_QUADRATIC_RATIO = 0.05
+# Convergence, relative to nu.  A step at round-off; or, in the asymptotic regime, a
+# last step small enough that the error it leaves -- about last^4 / before^3 for Halley,
+# last^3 / before^2 for Newton -- is below _LEFT_TOL.
+_ROUNDOFF_TOL = 1e-14
+_ASYMPTOTIC_TOL = 1e-4
+_LEFT_TOL = 1e-17
 # Astroid test |4A^2 - (|B|^(2/3) + |C|^(2/3))^3| below this times 4A^2 -> tangent pair.
 _TANGENT_TOL = 64 * 2.220446049250313e-16
 # Coefficients (scaled to max 1) below this are exact zeros: closed forms, error < 1e-100.
 _TINY = 1e-100
-# The final rotation is skipped if Newton on f(phi) wants to move further than this (it is
-# then not at a simple root: a tangent register).
+# The careful path's final rotation is skipped if Newton on f(phi) wants to move further
+# than this (then it is not at a simple root: a tangent register).
 _POLISH_LIMIT = 1e-4
 
 # Per-slot layout of the four secular problems: which coefficient is Q (the pole of the
@@ -87,66 +87,93 @@ _SWAP = (False, True, False, True)
 _SIGN_U = (1.0, 1.0, -1.0, -1.0)
 
 
-def _secular_newton(nu, aa, b2, c2, inner_sign, needed, iterations, until_converged):
-    """Newton steps on psi(nu) = 1 for the four slots (axis -1 of `nu`), from per-point
-    $2a$, $b^2$, $c^2$ and the branch of the inner slots: `iterations` of them, or, with
-    `until_converged`, as many as it takes (at most `iterations`) for every `needed` slot
-    to converge.  Returns nu and whether each slot converged."""
-    slot = lambda values: jnp.asarray(values)  # noqa: E731
+def _slot(values):
+    """A constant per-slot vector (trailing axis of 4)."""
+    return jnp.asarray(values)
+
+
+def _converged(nu, last, before, order):
+    """Whether an iteration of convergence `order` (2 Newton, 3 Halley) has converged,
+    from its last two steps."""
+    last, before = jnp.abs(last) / nu, jnp.abs(before) / nu
+    left = last**order / before ** (order - 1)
+    return (last <= _ROUNDOFF_TOL) | ((last <= _ASYMPTOTIC_TOL) & (left <= _LEFT_TOL))
+
+
+def _secular_solve(nu, aa, b2, c2, inner_sign, needed, careful):
+    """Solve psi(nu) = 1 for the four slots (axis -1 of `nu`) from starts left of every
+    root, given per-point $2a$, $b^2$, $c^2$ and the branch of the inner slots (+-1).
+
+    Fast path: `_FAST_ITERATIONS` Halley steps.  Careful path: Newton steps until every
+    `needed` slot has converged (at most `_MORE_ITERATIONS`).  Each step rebuilds the
+    per-slot coefficients from per-point ones, so that only nu travels between steps, and
+    ends with its division, so that XLA keeps nu itself in memory between steps: written
+    as nu + step, the sum nu_0 + step_1 + ... + step_k is refolded into every later step,
+    each then reading all earlier steps.  Returns nu and whether each slot converged."""
     expand = lambda x: x[..., None]  # noqa: E731
 
-    def step(nu):
-        # Per-slot coefficients are rebuilt from per-point ones inside each step, so that
-        # only nu and per-point arrays travel between iterations.
-        Q2 = jnp.where(slot(_Q_IS_B), expand(b2), expand(c2))
-        P2 = jnp.where(slot(_Q_IS_B), expand(c2), expand(b2))
-        e = jnp.where(slot(_INNER), expand(inner_sign), 1.0)
+    def coefficients():
+        Q2 = jnp.where(_slot(_Q_IS_B), expand(b2), expand(c2))
+        P2 = jnp.where(_slot(_Q_IS_B), expand(c2), expand(b2))
+        e = jnp.where(_slot(_INNER), expand(inner_sign), 1.0)
+        return Q2, P2, e
+
+    def newton(nu):
+        # psi - 1 = (nu d - sqrt N) / sqrt N with d = 2a + e nu, N = Q^2 d^2 + P^2 nu^2.
+        Q2, P2, e = coefficients()
         d = expand(aa) + e * nu
         N = Q2 * d * d + P2 * nu * nu
         den = Q2 * d * d * d + e * P2 * nu * nu * nu
-        # The division comes last, so that XLA keeps nu itself (not the step) between
-        # iterations; kept as nu + step it would fold nu_0 + step_1 + ... + step_k into
-        # every later iteration, each then reading all earlier steps from memory.
         return (nu * den + N * (jnp.sqrt(N) - nu * d)) / den
 
-    if until_converged:
+    def halley(nu):
+        # With g = nu d, s = sqrt N: psi - 1 = H / s (H = g - s), psi' = D1 / (2 s N),
+        # psi'' = D2 / (4 s N^2), and the Halley step -2 h psi' / (2 psi'^2 - h psi'')
+        # is -4 N H D1 / (2 D1^2 - H D2).
+        Q2, P2, e = coefficients()
+        d = expand(aa) + e * nu
+        N = Q2 * d * d + P2 * nu * nu
+        dN = 2 * (e * Q2 * d + P2 * nu)
+        g = nu * d
+        dg = d + e * nu
+        H = g - jnp.sqrt(N)
+        D1 = 2 * N * dg - g * dN
+        D2 = 8 * e * N * N - 4 * dg * dN * N + 3 * g * dN * dN - 4 * g * (Q2 + P2) * N
+        den = 2 * D1 * D1 - H * D2
+        return (nu * den - 4 * N * H * D1) / den
 
-        def active(nu, last, before):
-            return needed & ~_converged(nu, last, before)
+    if not careful:
+        history = [nu]
+        for _ in range(_FAST_ITERATIONS):
+            history.append(halley(history[-1]))
+        nu, last, before = history[-1], history[-1] - history[-2], history[-2] - history[-3]
+        # Halley is not monotone: next to a tangency it can cross the separator to the
+        # other root of the pair.  A root of this slot's branch has psi' > 0 there.
+        Q2, P2, e = coefficients()
+        d = expand(aa) + e * nu
+        rising = Q2 * d * d * d + e * P2 * nu * nu * nu > 0
+        return nu, _converged(nu, last, before, 3) & rising & (nu > 0) & (d > 0)
 
-        def unfinished(carry):
-            k, *state = carry
-            return (k < iterations) & jnp.any(active(*state))
+    def active(nu, last, before):
+        return needed & ~_converged(nu, last, before, 2)
 
-        def body(carry):
-            # Converged slots stop moving, so that a point's result does not depend on
-            # the batch it is solved in.
-            k, nu, last, before = carry
-            moving = active(nu, last, before)
-            new = step(nu)
-            return (
-                k + 1,
-                jnp.where(moving, new, nu),
-                jnp.where(moving, new - nu, last),
-                jnp.where(moving, last, before),
-            )
+    def unfinished(carry):
+        k, *state = carry
+        return (k < _MORE_ITERATIONS) & jnp.any(active(*state))
 
-        inf = jnp.full_like(nu, jnp.inf)
-        _, nu, last, before = jax.lax.while_loop(unfinished, body, (0, nu, inf, inf))
-    else:
-        nu = jax.lax.fori_loop(0, iterations - 2, lambda _, nu: step(nu), nu)
-        nu1 = step(nu)
-        nu2 = step(nu1)
-        nu, last, before = nu2, nu2 - nu1, nu1 - nu
-    return nu, _converged(nu, last, before)
+    def body(carry):
+        # Converged slots stop moving, so that a point's result does not depend on the
+        # batch it is solved in.
+        k, nu, last, before = carry
+        moving = active(nu, last, before)
+        new = newton(nu)
+        return k + 1, jnp.where(moving, new, nu), jnp.where(moving, new - nu, last), jnp.where(moving, last, before)
 
-
-def _converged(nu, last, before):
-    """Newton has converged when its last step was at round-off, or small and in the
-    quadratic regime (much smaller than the one before): the error left is then about
-    last^3 / before^2, which the final Newton step on f(phi) squares again."""
-    last, before = jnp.abs(last), jnp.abs(before)
-    return (last <= _STEP_TOL * nu) | ((last <= _QUADRATIC_TOL * nu) & (last <= _QUADRATIC_RATIO * before))
+    # No steps yet: NaN, which no convergence test passes (an infinite step before the
+    # first would make the asymptotic test pass after one step).
+    nan = jnp.full_like(nu, jnp.nan)
+    _, nu, last, before = jax.lax.while_loop(unfinished, body, (0, nu, nan, nan))
+    return nu, _converged(nu, last, before, 2)
 
 
 def _unit(x, y):
@@ -158,12 +185,7 @@ def _unit(x, y):
 
 def _solve(A, B, C, careful=False):
     """Primal solve.  Returns phi, cos phi, sin phi, valid (each ... x 4), continuum,
-    tangent (bool per slot: the slot is a double root), converged (per point).
-
-    The fast path takes `_FAST_ITERATIONS` Newton steps and decides the inner pair by the
-    sign of the astroid polynomial, leaving undecided (too close to the astroid) and
-    unconverged points to the `careful` path: the astroid test by cube roots (with the
-    tangent register), and Newton until converged (at most `_MORE_ITERATIONS` steps)."""
+    tangent (bool per slot: the slot is a double root), converged (per point)."""
     dtype = jnp.result_type(A, B, C, float)
     A, B, C = (jnp.asarray(x, dtype) for x in (A, B, C))
     A, B, C = jnp.broadcast_arrays(A, B, C)
@@ -204,43 +226,43 @@ def _solve(A, B, C, careful=False):
         decided = jnp.abs(astroid) > _TANGENT_TOL
         tangent_point = jnp.zeros_like(pair)
 
-    slot = lambda values: jnp.asarray(values)  # noqa: E731  (constant per-slot vectors)
-    Q = jnp.where(slot(_Q_IS_B), b_it[..., None], c_it[..., None])
-    P = jnp.where(slot(_Q_IS_B), c_it[..., None], b_it[..., None])
+    Q = jnp.where(_slot(_Q_IS_B), b_it[..., None], c_it[..., None])
+    P = jnp.where(_slot(_Q_IS_B), c_it[..., None], b_it[..., None])
     inner_sign = jnp.where(pair, -1.0, 1.0)
-    e = jnp.where(slot(_INNER), inner_sign[..., None], 1.0)
+    e = jnp.where(_slot(_INNER), inner_sign[..., None], 1.0)
     aa = 2 * a[..., None]
-    # Left of every root: |Q|, and on the outer branches sqrt(b^2 + c^2) - 2a, here with a
-    # lower bound of the square root.
-    r_low = (jnp.maximum(jnp.abs(b_it), jnp.abs(c_it)) + 0.41421356 * jnp.minimum(jnp.abs(b_it), jnp.abs(c_it)))
-    nu0 = jnp.where(e > 0, jnp.maximum(jnp.abs(Q), r_low[..., None] - aa), jnp.abs(Q))
-    needed = ~(slot(_INNER) & ~pair[..., None])
-    iterations = _MORE_ITERATIONS if careful else _FAST_ITERATIONS
-    nu, done = _secular_newton(nu0, 2 * a, b2, c2, inner_sign, needed, iterations, careful)
+    # Starts left of every root.  Outer branches: |Q|, and sqrt(b^2 + c^2) - 2a (here with
+    # a lower bound of the square root).  Inner: at the root P^2/(2a - nu)^2 exceeds its
+    # value at nu = |Q|, so Q^2/nu^2 is below 1 - P^2/(2a - |Q|)^2.
+    absQ = jnp.abs(Q)
+    r_low = jnp.maximum(jnp.abs(b_it), jnp.abs(c_it)) + 0.41421356 * jnp.minimum(jnp.abs(b_it), jnp.abs(c_it))
+    inner_room = 1 - P * P / jnp.square(jnp.where(e > 0, 1.0, aa - absQ))
+    nu0 = jnp.where(e > 0, jnp.maximum(absQ, r_low[..., None] - aa), absQ / jnp.sqrt(jnp.maximum(inner_room, 1e-300)))
+    needed = ~(_slot(_INNER) & ~pair[..., None])
+    nu, done = _secular_solve(nu0, 2 * a, b2, c2, inner_sign, needed, careful)
     converged = (jnp.all(done | ~needed, axis=-1) & decided) | factorable | continuum
 
     # The register from nu: (x, y) from Q/nu and P/d, one division for both.
     d = aa + e * nu
     inv = 1 / (nu * d)
-    U = slot(_SIGN_U) * Q * d * inv
+    U = _slot(_SIGN_U) * Q * d * inv
     V = -P * nu * inv
-    x = jnp.where(slot(_SWAP), V, U)
-    y = jnp.where(slot(_SWAP), U, V)
-    tangent = slot((False, False, True, False)) & tangent_point[..., None]
+    x, y = _unit(jnp.where(_slot(_SWAP), V, U), jnp.where(_slot(_SWAP), U, V))
+    tangent = _slot((False, False, True, False)) & tangent_point[..., None]
     if careful:
         # A tangent register (slot 2) is the separator, direction -(cbrt b, cbrt c).
         tx, ty = -cb[..., None], -cc[..., None]
         tnorm = jax.lax.rsqrt(tx * tx + ty * ty)
         x = jnp.where(tangent, tx * tnorm, x)
         y = jnp.where(tangent, ty * tnorm, y)
-    x, y = _unit(x, y)
-    # One Newton step on f(phi) itself, as a rotation by -f/f'.
-    a_, b_, c_ = a[..., None], b_it[..., None], c_it[..., None]
-    f = 2 * a_ * x * y + b_ * y + c_ * x
-    fp = 2 * a_ * (x * x - y * y) + b_ * x - c_ * y
-    rotation = -f / jnp.where(fp == 0, 1.0, fp)
-    rotation = jnp.where((jnp.abs(rotation) <= _POLISH_LIMIT) & ~tangent, rotation, 0.0)
-    x, y = _unit(x - rotation * y, y + rotation * x)
+        # One Newton step on f(phi) itself, as a rotation by -f/f': full accuracy where
+        # Newton on nu stopped short of round-off (a root close to a tangency).
+        a_, b_, c_ = a[..., None], b_it[..., None], c_it[..., None]
+        f = 2 * a_ * x * y + b_ * y + c_ * x
+        fp = 2 * a_ * (x * x - y * y) + b_ * x - c_ * y
+        rotation = -f / jnp.where(fp == 0, 1.0, fp)
+        rotation = jnp.where((jnp.abs(rotation) <= _POLISH_LIMIT) & ~tangent, rotation, 0.0)
+        x, y = _unit(x - rotation * y, y + rotation * x)
     always = jnp.ones_like(pair)
     valid = jnp.stack([always, always, pair | tangent_point, pair], axis=-1)
 
@@ -266,8 +288,8 @@ def _solve(A, B, C, careful=False):
 
 def _solve_chunk(A, B, C):
     """Fast path on flat (n,) coefficients, then the points it leaves unconverged
-    re-solved `_FALLBACK_BATCH` at a time (gathered, so that their cost follows their
-    number), each batch stepping until all its points converge."""
+    re-solved by the careful path `_FALLBACK_BATCH` at a time (gathered, so that their
+    cost follows their number)."""
     *out, converged = _solve(A, B, C)
     n = A.shape[0]
     batch = min(n, _FALLBACK_BATCH)

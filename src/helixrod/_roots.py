@@ -64,7 +64,7 @@ _FAST_ITERATIONS = 4
 _MORE_ITERATIONS = 128
 # Points re-solved together by the careful path (a while loop takes as many batches as
 # there are unconverged points).
-_FALLBACK_BATCH = 16
+_FALLBACK_BATCH = 256
 # Convergence, relative to nu.  A step at round-off; or, in the asymptotic regime, a
 # last step small enough that the error it leaves -- about last^4 / before^3 for Halley,
 # last^3 / before^2 for Newton -- is below _LEFT_TOL.
@@ -286,42 +286,35 @@ def _solve(A, B, C, careful=False):
     return _angle(cos_phi, sin_phi), cos_phi, sin_phi, valid, continuum, tangent, converged
 
 
-def _solve_chunk(A, B, C):
-    """Fast path on flat (n,) coefficients, then the points it leaves unconverged
-    re-solved by the careful path `_FALLBACK_BATCH` at a time (gathered, so that their
-    cost follows their number)."""
-    *out, converged = _solve(A, B, C)
-    n = A.shape[0]
-    batch = min(n, _FALLBACK_BATCH)
-    bad = ~converged
-    n_bad = jnp.sum(bad)
-    (order,) = jnp.nonzero(bad, size=n, fill_value=0)
-
-    def unfinished(carry):
-        return carry[0] * batch < n_bad
-
-    def resolve(carry):
-        k, out = carry
-        idx = jax.lax.dynamic_slice(order, (k * batch,), (batch,))
-        redo = _solve(A[idx], B[idx], C[idx], careful=True)[:-1]
-        # Slots past the last bad point hold index 0, or (at the end of `order`) repeat
-        # bad points: either way they rewrite a value with itself.
-        keep = bad[idx]
-        out = tuple(o.at[idx].set(jnp.where(_expand(keep, r), r, o[idx])) for o, r in zip(out, redo))
-        return k + 1, out
-
-    return jax.lax.while_loop(unfinished, resolve, (0, tuple(out)))[1]
-
-
 def _solve_all(A, B, C):
-    """`_solve_chunk` over any shape, a cache-sized chunk of points at a time."""
+    """Fast path over any shape, a cache-sized chunk of points at a time; then the points
+    it leaves unconverged re-solved by the careful path, gathered from the whole batch
+    `_FALLBACK_BATCH` at a time (so that their cost follows their number)."""
     A, B, C = jnp.broadcast_arrays(*(jnp.asarray(x, jnp.result_type(A, B, C, float)) for x in (A, B, C)))
     shape = A.shape
     n = A.size
-    if n == 0:
-        out = _solve(A, B, C)[:-1]
-    else:
-        out = map_chunks(_solve_chunk, (A.reshape(n), B.reshape(n), C.reshape(n)), n)
+    A, B, C = A.reshape(n), B.reshape(n), C.reshape(n)
+    *out, converged = map_chunks(_solve, (A, B, C), n)
+    if n > 0:
+        batch = min(n, _FALLBACK_BATCH)
+        bad = ~converged
+        n_bad = jnp.sum(bad)
+        (order,) = jnp.nonzero(bad, size=n, fill_value=0)
+
+        def unfinished(carry):
+            return carry[0] * batch < n_bad
+
+        def resolve(carry):
+            k, out = carry
+            idx = jax.lax.dynamic_slice(order, (k * batch,), (batch,))
+            redo = _solve(A[idx], B[idx], C[idx], careful=True)[:-1]
+            # Slots past the last bad point hold index 0, or (at the end of `order`)
+            # repeat bad points: either way they rewrite a value with itself.
+            keep = bad[idx]
+            out = tuple(o.at[idx].set(jnp.where(_expand(keep, r), r, o[idx])) for o, r in zip(out, redo))
+            return k + 1, out
+
+        out = jax.lax.while_loop(unfinished, resolve, (0, tuple(out)))[1]
     return tuple(x.reshape(shape + x.shape[1:]) for x in out)
 
 

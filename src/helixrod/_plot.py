@@ -7,15 +7,13 @@ import numpy as np
 OKABE_ITO = ["#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#F0E442", "#000000"]
 
 
-def plot_hyperboloid(rod, path, *, u3_slice=1.5, radii=None, extent=3.0):
+def plot_hyperboloid(rod, path=None, *, u3_slice=1.5, radii=None, extent=3.0):
     """Helix hyperboloid $h(u) = m_1 u_2 - m_2 u_1 = 0$ in 3D, its slice at $u_3$ =
     `u3_slice` with constraint circles of the given `radii` (curvatures), and the
-    registers (intersections) on each circle.  Writes a PNG to `path`."""
-    import matplotlib
-
-    matplotlib.use("Agg")
+    registers (intersections) on each circle.  `path=None` returns the `Figure`; otherwise
+    writes it and returns `path`."""
     import jax.numpy as jnp
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     from ._equilibria import helix_equilibria
 
@@ -24,7 +22,7 @@ def plot_hyperboloid(rod, path, *, u3_slice=1.5, radii=None, extent=3.0):
         m = np.asarray(rod.moment(u))
         return m[..., 0] * u2 - m[..., 1] * u1
 
-    fig = plt.figure(figsize=(11, 5))
+    fig = Figure(figsize=(11, 5), layout="constrained")
     ax3 = fig.add_subplot(1, 2, 1, projection="3d")
     g = np.linspace(-extent, extent, 121)
     # The hyperboloid is linear in u3 at fixed (u1, u2): solve for u3 to draw it.
@@ -62,23 +60,19 @@ def plot_hyperboloid(rod, path, *, u3_slice=1.5, radii=None, extent=3.0):
     ax.set_ylabel("$u_2$")
     ax.set_title(f"slice $u_3 = {u3_slice:g}$: registers (filled: stable)")
     ax.legend(loc="upper right")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _finish(fig, path)
 
 
 # -- inverse spring problem (issue 4) ------------------------------------------------------
-def plot_fit(data, fit, path):
+def plot_fit(data, fit, path=None):
     """Observed against predicted axial force and moment of a `StiffnessFit` (error bars:
-    the data's sigmas; the diagonal is a perfect fit), and the normalised residuals.
-    Writes a PNG to `path`."""
-    import matplotlib
+    the data's sigmas of F and M; the diagonal is a perfect fit), and the normalised
+    residuals (whitened pairs for an errors-in-variables fit).  `path=None` returns the
+    matplotlib `Figure`; otherwise writes it (PNG/PDF/SVG by suffix) and returns `path`."""
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2))
+    fig = Figure(figsize=(13, 4.2), layout="constrained")
+    axes = fig.subplots(1, 3)
     n = len(data)
     r = np.asarray(fit.residuals)
     for ax, obs, pred, sig, label, colour in (
@@ -98,10 +92,8 @@ def plot_fit(data, fit, path):
     axes[2].set_ylabel("residual / sigma")
     axes[2].legend()
     fig.suptitle(f"fit_stiffness: cost = {float(fit.cost):.4g}, reduced chi2 = {float(fit.chi2_reduced):.3g}")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _finish(fig, path)
+
 
 # -- the kappa-tau atlas (issue 5) --------------------------------------------------------
 # These figures use matplotlib's object-oriented API (`matplotlib.figure.Figure`), never

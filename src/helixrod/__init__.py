@@ -72,4 +72,7 @@ from . import dna as dna
 from ._datasets import SpringExample as SpringExample, load_spring_example as load_spring_example
 from ._spring import effective_moduli as effective_moduli, spring_compliance as spring_compliance
 
-__version__ = importlib.metadata.version("helixrod")
+try:
+    __version__ = importlib.metadata.version("helixrod")
+except importlib.metadata.PackageNotFoundError:  # imported from a source tree, not installed
+    __version__ = "0+unknown"

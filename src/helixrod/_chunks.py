@@ -1,10 +1,10 @@
-"""Elementwise kernels evaluated a cache-sized chunk of points at a time.
+"""Elementwise kernels evaluated a chunk of points at a time.
 
-The register solve is a few dozen dependent elementwise steps.  Written out over a
-whole batch, every intermediate array streams through main memory, and XLA's CPU
-fusion recomputes subexpressions shared by several consumers (measured: 6x the flops
-of one solve on a 65536-point batch).  A `lax.map` over chunks of `CHUNK` points keeps
-each step's arrays in cache; the result is bit-identical to the unchunked kernel.
+The register solve is a few dozen dependent elementwise steps, each a pass over its
+arrays.  Written out over a whole batch on a CPU, every intermediate array streams through
+main memory; a `lax.map` over cache-sized chunks keeps them in cache.  On an accelerator
+the chunks are large (each is a round of kernel launches).  Values do not depend on the
+chunk size beyond rounding (other sizes are other XLA programs).
 """
 
 from __future__ import annotations
@@ -12,17 +12,27 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-# Points per chunk: best of 256 ... 16384 on 2 CPU cores (benchmarks/bench_equilibria.py).
-CHUNK = 1024
+# Points per chunk.  On a CPU: cache-sized (best of 256 ... 16384 on 2 CPU cores,
+# benchmarks/bench_equilibria.py).  On an accelerator every chunk is a round of kernel
+# launches, so chunks are as large as memory allows (measured on an H100:
+# benchmarks/bench_device.py).
+CPU_CHUNK = 1024
+ACCELERATOR_CHUNK = 1 << 21
 
 
-def map_chunks(fn, args, size: int, chunk: int = CHUNK):
+def default_chunk() -> int:
+    """The chunk size for the default backend (read at trace time)."""
+    return CPU_CHUNK if jax.default_backend() == "cpu" else ACCELERATOR_CHUNK
+
+
+def map_chunks(fn, args, size: int, chunk: int | None = None):
     """`fn(*args)` for a kernel that acts independently on each index of axis 0.
 
     Every leaf of `args` (a tuple of pytrees) has leading axis `size`; so has every leaf
-    of the result.  Batches larger than `chunk` are padded by repeating their last point
-    and mapped over chunk by chunk.
+    of the result.  Batches larger than `chunk` (default: `default_chunk()`) are padded by
+    repeating their last point and mapped over chunk by chunk.
     """
+    chunk = default_chunk() if chunk is None else chunk
     if size <= chunk:
         return fn(*args)
     chunks = -(-size // chunk)

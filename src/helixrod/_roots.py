@@ -63,8 +63,10 @@ NUM_SLOTS = 4
 _FAST_ITERATIONS = 4
 _MORE_ITERATIONS = 128
 # Points re-solved together by the careful path (a while loop takes as many batches as
-# there are unconverged points).
+# there are unconverged points), on a CPU and on an accelerator (where each batch is a
+# round of kernel launches).
 _FALLBACK_BATCH = 256
+_ACCELERATOR_FALLBACK_BATCH = 16384
 # Convergence, relative to nu.  A step at round-off; or, in the asymptotic regime, a
 # last step small enough that the error it leaves -- about last^4 / before^3 for Halley,
 # last^3 / before^2 for Newton -- is below _LEFT_TOL.
@@ -296,7 +298,7 @@ def _solve_all(A, B, C):
     A, B, C = A.reshape(n), B.reshape(n), C.reshape(n)
     *out, converged = map_chunks(_solve, (A, B, C), n)
     if n > 0:
-        batch = min(n, _FALLBACK_BATCH)
+        batch = min(n, _FALLBACK_BATCH if jax.default_backend() == "cpu" else _ACCELERATOR_FALLBACK_BATCH)
         bad = ~converged
         n_bad = jnp.sum(bad)
         (order,) = jnp.nonzero(bad, size=n, fill_value=0)

@@ -48,6 +48,9 @@ DEFAULT_FIELDS = ("force", "moment", "stable", "count")
 # Points per device in one chunk: large enough to amortise dispatch, small enough that a
 # chunk's temporaries stay at tens of MB (measured in tests/test_sweep.py).
 _POINTS_PER_DEVICE = 1 << 16
+# On an accelerator each chunk is a round of kernel launches and a transfer: larger
+# chunks (measured on an H100, benchmarks/bench_device.py).
+_POINTS_PER_ACCELERATOR = 1 << 22
 _AXIS = "points"
 
 
@@ -145,7 +148,8 @@ def _stream(point_fn, rod, kappa, tau, trailing: Mapping, chunk_size, progress, 
     total = kappa.size * tau.size
     if chunk_size is None:
         # Small grids: the next power of two, so that similar sizes share one compile.
-        chunk = min(_POINTS_PER_DEVICE * n_dev, max(256, 1 << (total - 1).bit_length()))
+        per_device = _POINTS_PER_DEVICE if devices[0].platform == "cpu" else _POINTS_PER_ACCELERATOR
+        chunk = min(per_device * n_dev, max(256, 1 << (total - 1).bit_length()))
     else:
         chunk = int(chunk_size)
         if chunk < 1:
@@ -269,7 +273,7 @@ def sweep(
     drops the arithmetic of the others.  Unknown names raise `ValueError`.
 
     **Streaming.**  The grid is evaluated in chunks of `chunk_size` points (default
-    65536 per device), one compiled function reused for every chunk (the last is padded
+    65536 per CPU device, 4194304 per accelerator), one compiled function reused for every chunk (the last is padded
     by repeating the final point, and trimmed), so memory is the output arrays plus one
     chunk of temporaries.  A rich progress bar is shown when there is more than one chunk
     and stdout is a terminal; `progress=True/False` forces it on or off.

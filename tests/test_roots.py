@@ -125,17 +125,19 @@ def test_gradient_matches_central_differences(rng):
         np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8)
 
 
-def test_robust_fallback_agrees_with_fast_path(rng):
-    """The gathered robust re-solve (64 bisections) gives the same roots as the fast path
-    where the fast path converged, on coefficients with ratios up to ~1e7."""
+def test_fallback_agrees_with_fast_path(rng):
+    """Points the fast path leaves unconverged are re-solved with many more Newton steps;
+    where the fast path did converge, the long solve gives the same roots.  On coefficients
+    with ratios up to ~1e7 the fast path converges at > 99% of points."""
     from helixrod import _roots
 
     n = 3000
     A, B, C = (rng.normal(size=n) * np.exp(rng.uniform(-8, 8, n)) for _ in range(3))
     fast = [np.asarray(x) for x in jax.jit(_roots._solve)(A, B, C)]
-    robust = [np.asarray(x) for x in jax.jit(lambda a, b, c: _roots._solve(a, b, c, robust=True))(A, B, C)]
+    long = [np.asarray(x) for x in jax.jit(lambda a, b, c: _roots._solve(a, b, c, careful=True))(A, B, C)]
+    assert fast[-1].mean() > 0.99 and long[-1].all()
     both = fast[3] & fast[-1][:, None]
-    assert fast[-1].mean() > 0.95
-    assert np.max(np.where(both, angular_distance(fast[0], robust[0]), 0)) < 1e-12
+    assert np.max(np.where(both, angular_distance(fast[0], long[0]), 0)) < 1e-14
     merged = [np.asarray(x) for x in solve(A, B, C)]
-    assert np.max(np.where(merged[3], angular_distance(merged[0], robust[0]), 0)) < 1e-12
+    np.testing.assert_array_equal(merged[3], long[3])
+    assert np.max(np.where(merged[3], angular_distance(merged[0], long[0]), 0)) < 1e-14

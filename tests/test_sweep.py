@@ -161,7 +161,8 @@ def test_sensitivity_matches_central_differences(sens):
 
 @pytest.mark.slow
 def test_devices_and_memory_in_subprocess():
-    """Two host devices: identical bits on 1 and 2 devices (and across chunk sizes); peak
+    """Two host devices: identical bits on 1 and 2 devices (same points per device), equal to
+    rounding across chunk sizes; peak
     memory of a 10^6-point sweep (the 10^7-point count-only figure is in the benchmark)."""
     script = textwrap.dedent(
         """
@@ -176,14 +177,18 @@ def test_devices_and_memory_in_subprocess():
         rod = hr.Rod(1.0, 1.7, 0.9, K13=0.3, K23=-0.2, uhat=(0.8, 0.3, 0.4))
         fields = ("phi", "force", "stable_moment", "count")
         before = peak_kb()
-        # Two compiles in all: the 2-device runs share chunk_size 2 x 65536 (the default).
+        # The 2-device runs share chunk_size 2 x 65536 (the default), 65536 points per device.
         big = hr.sweep(rod, np.linspace(0, 3, 1000), np.linspace(-3, 3, 1000), fields=fields, progress=False)
         peak = peak_kb()
         k, t = np.linspace(0, 3, 61), np.linspace(-3, 3, 67)
-        one = hr.sweep(rod, k, t, fields=fields, devices=jax.devices()[:1], chunk_size=1000, progress=False)
+        one = hr.sweep(rod, k, t, fields=fields, devices=jax.devices()[:1], chunk_size=65536, progress=False)
         two = hr.sweep(rod, k, t, fields=fields, chunk_size=2 * 65536, progress=False)
+        small = hr.sweep(rod, k, t, fields=fields, devices=jax.devices()[:1], chunk_size=1000, progress=False)
         same = all(np.array_equal(one[f], two[f], equal_nan=True) for f in fields)
-        print(json.dumps({"devices": len(jax.devices()), "same": same, "before_mb": before / 1024,
+        # Another chunk size is another XLA program (other fusions, other FMA contractions):
+        # equal to rounding, not to the bit.
+        close = all(np.allclose(one[f], small[f], rtol=1e-13, atol=1e-13, equal_nan=True) for f in fields)
+        print(json.dumps({"devices": len(jax.devices()), "same": same, "close": close, "before_mb": before / 1024,
                           "peak_mb": peak / 1024, "counts": np.unique(big["count"]).tolist()}))
         """
     )
@@ -193,7 +198,7 @@ def test_devices_and_memory_in_subprocess():
     report = json.loads(out.stdout.strip().splitlines()[-1])
     print(report)
     assert report["devices"] == 2
-    assert report["same"]
+    assert report["same"] and report["close"]
     assert set(report["counts"]) <= {0, 2, 3, 4}
     assert report["peak_mb"] < 1200, report
 

@@ -127,27 +127,35 @@ def helix_equilibria(rod: Rod, kappa: ArrayLike, tau: ArrayLike) -> HelixEquilib
     kappa = jnp.broadcast_to(jnp.asarray(kappa, dtype), shape).reshape(size)
     tau = jnp.broadcast_to(jnp.asarray(tau, dtype), shape).reshape(size)
     if batch:
-        flat_rod = jax.tree.map(
+        rod = jax.tree.map(
             lambda x: jnp.broadcast_to(x, shape + x.shape[len(batch) :]).reshape((size,) + x.shape[len(batch) :]),
             rod,
         )
-        eq = map_chunks(_equilibria_flat, (flat_rod, kappa, tau), size)
-    else:
-        eq = map_chunks(lambda k, t: _equilibria_flat(rod, k, t), (kappa, tau), size)
-    return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), eq)
-
-
-def _equilibria_flat(rod: Rod, kappa, tau) -> HelixEquilibria:
-    """`helix_equilibria` on flat `kappa`, `tau` of shape (n,), rod unbatched or (n,)."""
     A, B, C = register_coefficients(rod, kappa, tau)
     good = jnp.isfinite(kappa) & jnp.isfinite(tau) & (kappa >= 0)
-    straight = good & (kappa == 0)
     helical = good & (kappa > 0)
     # Outside the domain solve a harmless problem and mask it.
     A = jnp.where(helical, A, 1.0)
     B = jnp.where(helical, B, 0.0)
     C = jnp.where(helical, C, 0.0)
-    phi, cos_phi, sin_phi, valid, continuum, tangent = register_roots(A, B, C)
+    # The registers of the whole batch at once (the solver chunks and gathers its rare hard
+    # points itself), then the rest, a cache-sized chunk at a time.
+    registers = register_roots(A, B, C)
+    if batch:
+        eq = map_chunks(_equilibria_flat, (rod, kappa, tau, (A, B, C), registers), size)
+    else:
+        eq = map_chunks(lambda *args: _equilibria_flat(rod, *args), (kappa, tau, (A, B, C), registers), size)
+    return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), eq)
+
+
+def _equilibria_flat(rod: Rod, kappa, tau, coefficients, registers) -> HelixEquilibria:
+    """`helix_equilibria` on flat `kappa`, `tau` of shape (n,) (rod unbatched or (n,)),
+    given their register coefficients and registers."""
+    A, B, C = coefficients
+    good = jnp.isfinite(kappa) & jnp.isfinite(tau) & (kappa >= 0)
+    straight = good & (kappa == 0)
+    helical = good & (kappa > 0)
+    phi, cos_phi, sin_phi, valid, continuum, tangent = registers
     valid = valid & helical[..., None]
     continuum = continuum & helical
 

@@ -6,33 +6,41 @@ $$f(\\varphi) = A \\sin 2\\varphi + B \\sin\\varphi + C\\cos\\varphi = \\frac{1}
 \\frac{dW}{d\\varphi},$$
 
 so the registers are the critical points of the energy on the constraint circle.  On the
-unit circle $v = (\\cos\\varphi, \\sin\\varphi)$ the energy is, up to a constant, the quadratic
-$G(v) = -\\tfrac{A}{2}(x^2 - y^2) - Bx + Cy$, and its critical points solve
-$(H - \\lambda I) v = -g$ with $H = \\mathrm{diag}(-A, A)$, $g = (-B, C)$ -- the boundary
-problem of a trust-region step.  For $A \\ge 0$ (else turn the circle by $\\pi/2$) the
-secular function $B^2/(\\lambda+A)^2 + C^2/(\\lambda-A)^2 = 1$ gives, with no search:
+unit circle $v = (x, y) = (\\cos\\varphi, \\sin\\varphi)$ the energy is, up to a constant, the
+quadratic $G(v) = -\\tfrac{A}{2}(x^2 - y^2) - Bx + Cy$, and its critical points solve
+$\\nabla G = \\mu v$: the boundary problem of a trust-region step.  For $A \\ge 0$ (else turn
+the circle by $\\pi/2$), $x = -B/(\\mu + A)$, $y = C/(\\mu - A)$ and the multiplier solves
+the secular equation $B^2/(\\mu + A)^2 + C^2/(\\mu - A)^2 = 1$.  With $\\nu$ the distance of
+$\\mu$ to the nearer pole, each register solves one of four problems of the same form
 
-* exactly one root with $\\lambda < -A$: the global minimum of $W$ on the circle, in the
-  quadrant $(\\operatorname{sgn} B, -\\operatorname{sgn} C)$;
-* exactly one root with $\\lambda > A$: the global maximum, in quadrant
-  $(-\\operatorname{sgn} B, \\operatorname{sgn} C)$;
-* two more (one local minimum, one local maximum) in quadrant
-  $(-\\operatorname{sgn} B, -\\operatorname{sgn} C)$ iff $(B, C)$ lies inside the astroid
-  $|B|^{2/3} + |C|^{2/3} < (2A)^{2/3}$, separated by the direction
-  $(-\\operatorname{sgn} B\\,|B|^{1/3}, -\\operatorname{sgn} C\\,|C|^{1/3})$ -- the
-  tangent (double) register on the astroid itself.
+$$\\psi(\\nu) = \\Big(\\frac{Q^2}{\\nu^2} + \\frac{P^2}{(2A + e\\,\\nu)^2}\\Big)^{-1/2} = 1, \\qquad \\nu > 0:$$
 
-So every register sits alone in a known bracket.  In each quadrant the substitution
-$t = \\tan(\\psi/2) \\in [0, 1]$ turns $f$ into the quartic
-$P(t) = -C_k t^4 + (2B_k - 4A_k) t^3 + (4A_k + 2B_k) t + C_k$, solved by bracketed
-Newton iteration a fixed number of times: elementwise arithmetic only (no eigenvalues,
-no data-dependent loops), run a cache-sized chunk of points at a time, unchanged on a
-GPU.  Exact zeros of $B$ or $C$ (the common uncoupled rods) are read as a tiny positive
-number, the limit from above, so every root still has its own bracket.
+* slot 0, the global minimum of $W$ on the circle: $\\mu = -A - \\nu$, $(Q, P, e) = (B, C, +1)$;
+* slot 1, the global maximum: $\\mu = A + \\nu$, $(Q, P, e) = (C, B, +1)$;
+* slots 2 and 3, the local minimum and maximum of the inner pair, which exists iff $(B, C)$
+  lies inside the astroid $|B|^{2/3} + |C|^{2/3} < (2A)^{2/3}$: $\\mu = -A + \\nu$ with
+  $(B, C, -1)$ and $\\mu = A - \\nu$ with $(C, B, -1)$, each on its side of the separator
+  $\\nu_s = 2A |Q|^{2/3} / (|B|^{2/3} + |C|^{2/3})$ (the tangent register on the astroid).
 
-Registers closer than about $\\sqrt{\\epsilon}$ (relative to the coefficients) to a tangency
-cannot be told apart in floating point; where the astroid test is within `_TANGENT_TOL`
-of zero one *tangent* register (the extremum of $f$) is returned instead of the pair.
+On each of these branches $\\psi$ is increasing and concave left of its root (Moré &
+Sorensen, SIAM J. Sci. Stat. Comput. 4 (1983) 553, for the outer branches; checked
+numerically for the inner ones), and explicit lower bounds of every root are known.  So:
+
+* the **fast path** takes `_FAST_ITERATIONS` Halley steps on $\\psi = 1$ (cubic convergence;
+  one square root and one division a step) from those bounds, and decides the inner pair
+  by the sign of the astroid polynomial;
+* the points it leaves unconverged or undecided -- a few in $10^4$ of random coefficients:
+  next to the astroid's cusps, where a root is nearly triple, or next to a tangency -- are
+  gathered a batch at a time and re-solved by the **careful path**: the astroid test by cube
+  roots, and Newton steps, which climb monotonically to the root from the left, until they
+  converge, then one Newton step on $f(\\varphi)$ itself (a rotation of $(x, y)$).
+
+Elementwise arithmetic only (no eigenvalues, no data-dependent control flow in the fast
+path), unchanged on a GPU.  Exact zeros of $B$ or $C$ (the common uncoupled rods) have
+closed forms (`_factorable`).  Registers closer than about $10^{-7}$ (relative to the
+coefficients) to a tangency cannot be told apart in float64: where the astroid test is
+within `_TANGENT_TOL` of zero one *tangent* register -- the separator itself, the extremum
+of $f$ -- is returned instead of the pair.
 """
 
 from __future__ import annotations
@@ -48,209 +56,222 @@ from ._chunks import map_chunks
 # 3 the local maximum of the inner pair (a tangent register, when there is one, in 2).
 NUM_SLOTS = 4
 
-# Iteration budget per bracket.  The fast path localises by bisection
-# and polishes by Newton; measured on random coefficients with ratios up to 1e7 it
-# reaches full precision everywhere (tests/test_roots.py).  Brackets it leaves
-# unconverged (near-cusp and near-tangent coefficients) are gathered and re-solved by
-# the robust path: bisection to the last bit, then Newton.
-_FAST_BISECTIONS = 6
-_FAST_NEWTON = 5
-_ROBUST_BISECTIONS = 64
-_ROBUST_NEWTON = 2
-# A bracket counts as converged when the last Newton step moved t by less than this.
-_STEP_TOL = 1e-10
-# Astroid test |D| below this (coefficients scaled to max 1) -> tangent pair.
+# Halley steps of the fast path: on random coefficients (normal, or log-uniform over 7
+# decades) and on kappa-tau grids, about 7 points in 10^4 are left to the careful path
+# (tests/test_roots.py measures it).  Newton steps of the careful path at most: at an
+# exact cusp the root is triple and Newton converges linearly (ratio 2/3).
+_FAST_ITERATIONS = 4
+_MORE_ITERATIONS = 128
+# Points re-solved together by the careful path (a while loop takes as many batches as
+# there are unconverged points).
+_FALLBACK_BATCH = 256
+# Convergence, relative to nu.  A step at round-off; or, in the asymptotic regime, a
+# last step small enough that the error it leaves -- about last^4 / before^3 for Halley,
+# last^3 / before^2 for Newton -- is below _LEFT_TOL.
+_ROUNDOFF_TOL = 1e-14
+_ASYMPTOTIC_TOL = 1e-4
+_LEFT_TOL = 1e-17
+# Astroid test |4A^2 - (|B|^(2/3) + |C|^(2/3))^3| below this times 4A^2 -> tangent pair.
 _TANGENT_TOL = 64 * 2.220446049250313e-16
+# Coefficients (scaled to max 1) below this are exact zeros: closed forms, error < 1e-100.
+_TINY = 1e-100
+# The careful path's final rotation is skipped if Newton on f(phi) wants to move further
+# than this (then it is not at a simple root: a tangent register).
+_POLISH_LIMIT = 1e-4
+
+# Per-slot layout of the four secular problems: which coefficient is Q (the pole of the
+# root), the branch (e = -1 on the inner pair), and how (x, y) are read from (Q/nu, P/d).
+_Q_IS_B = (True, False, True, False)
+_INNER = (False, False, True, True)
+_SWAP = (False, True, False, True)
+_SIGN_U = (1.0, 1.0, -1.0, -1.0)
 
 
-def _rotate_coeffs(a, b, c, k):
-    """Coefficients of $f(k\\pi/2 + \\psi)$: each quarter turn maps (A,B,C) -> (-A,-C,B)."""
-    k = k % 4
-    A = jnp.where(k % 2 == 0, a, -a)
-    B = jnp.select([k == 0, k == 1, k == 2], [b, -c, -b], c)
-    C = jnp.select([k == 0, k == 1, k == 2], [c, b, -c], -b)
-    return A, B, C
+def _slot(values):
+    """A constant per-slot vector (trailing axis of 4)."""
+    return jnp.asarray(values)
 
 
-def _rotate_vector(x, y, k):
-    """Turn (x, y) by -k quarter turns (into the frame of quadrant k)."""
-    k = k % 4
-    X = jnp.select([k == 0, k == 1, k == 2], [x, y, -x], -y)
-    Y = jnp.select([k == 0, k == 1, k == 2], [y, -x, -y], x)
-    return X, Y
+def _converged(nu, last, before, order):
+    """Whether an iteration of convergence `order` (2 Newton, 3 Halley) has converged,
+    from its last two steps."""
+    last, before = jnp.abs(last) / nu, jnp.abs(before) / nu
+    left = last**order / before ** (order - 1)
+    return (last <= _ROUNDOFF_TOL) | ((last <= _ASYMPTOTIC_TOL) & (left <= _LEFT_TOL))
 
 
-def _quadrant(sx, sy):
-    """Index k of the quadrant [k pi/2, (k+1) pi/2] with cos, sin of signs (sx, sy)."""
-    return jnp.where(sy > 0, jnp.where(sx > 0, 0, 1), jnp.where(sx > 0, 3, 2))
+def _secular_solve(nu, aa, b2, c2, inner_sign, needed, careful):
+    """Solve psi(nu) = 1 for the four slots (axis -1 of `nu`) from starts left of every
+    root, given per-point $2a$, $b^2$, $c^2$ and the branch of the inner slots (+-1).
+
+    Fast path: `_FAST_ITERATIONS` Halley steps.  Careful path: Newton steps until every
+    `needed` slot has converged (at most `_MORE_ITERATIONS`).  Each step rebuilds the
+    per-slot coefficients from per-point ones, so that only nu travels between steps, and
+    ends with its division, so that XLA keeps nu itself in memory between steps: written
+    as nu + step, the sum nu_0 + step_1 + ... + step_k is refolded into every later step,
+    each then reading all earlier steps.  Returns nu and whether each slot converged."""
+    expand = lambda x: x[..., None]  # noqa: E731
+
+    def coefficients():
+        Q2 = jnp.where(_slot(_Q_IS_B), expand(b2), expand(c2))
+        P2 = jnp.where(_slot(_Q_IS_B), expand(c2), expand(b2))
+        e = jnp.where(_slot(_INNER), expand(inner_sign), 1.0)
+        return Q2, P2, e
+
+    def newton(nu):
+        # psi - 1 = (nu d - sqrt N) / sqrt N with d = 2a + e nu, N = Q^2 d^2 + P^2 nu^2.
+        Q2, P2, e = coefficients()
+        d = expand(aa) + e * nu
+        N = Q2 * d * d + P2 * nu * nu
+        den = Q2 * d * d * d + e * P2 * nu * nu * nu
+        return (nu * den + N * (jnp.sqrt(N) - nu * d)) / den
+
+    def halley(nu):
+        # With g = nu d, s = sqrt N: psi - 1 = H / s (H = g - s), psi' = D1 / (2 s N),
+        # psi'' = D2 / (4 s N^2), and the Halley step -2 h psi' / (2 psi'^2 - h psi'')
+        # is -4 N H D1 / (2 D1^2 - H D2).
+        Q2, P2, e = coefficients()
+        d = expand(aa) + e * nu
+        N = Q2 * d * d + P2 * nu * nu
+        dN = 2 * (e * Q2 * d + P2 * nu)
+        g = nu * d
+        dg = d + e * nu
+        H = g - jnp.sqrt(N)
+        D1 = 2 * N * dg - g * dN
+        D2 = 8 * e * N * N - 4 * dg * dN * N + 3 * g * dN * dN - 4 * g * (Q2 + P2) * N
+        den = 2 * D1 * D1 - H * D2
+        return (nu * den - 4 * N * H * D1) / den
+
+    if not careful:
+        history = [nu]
+        for _ in range(_FAST_ITERATIONS):
+            history.append(halley(history[-1]))
+        nu, last, before = history[-1], history[-1] - history[-2], history[-2] - history[-3]
+        # Halley is not monotone: next to a tangency it can cross the separator to the
+        # other root of the pair.  A root of this slot's branch has psi' > 0 there.
+        Q2, P2, e = coefficients()
+        d = expand(aa) + e * nu
+        rising = Q2 * d * d * d + e * P2 * nu * nu * nu > 0
+        return nu, _converged(nu, last, before, 3) & rising & (nu > 0) & (d > 0)
+
+    def active(nu, last, before):
+        return needed & ~_converged(nu, last, before, 2)
+
+    def unfinished(carry):
+        k, *state = carry
+        return (k < _MORE_ITERATIONS) & jnp.any(active(*state))
+
+    def body(carry):
+        # Converged slots stop moving, so that a point's result does not depend on the
+        # batch it is solved in.
+        k, nu, last, before = carry
+        moving = active(nu, last, before)
+        new = newton(nu)
+        return k + 1, jnp.where(moving, new, nu), jnp.where(moving, new - nu, last), jnp.where(moving, last, before)
+
+    # No steps yet: NaN, which no convergence test passes (an infinite step before the
+    # first would make the asymptotic test pass after one step).
+    nan = jnp.full_like(nu, jnp.nan)
+    _, nu, last, before = jax.lax.while_loop(unfinished, body, (0, nu, nan, nan))
+    return nu, _converged(nu, last, before, 2)
 
 
-def _poly(t, A, B, C):
-    c3 = 2 * B - 4 * A
-    c1 = 4 * A + 2 * B
-    p = ((-C * t + c3) * t * t + c1) * t + C
-    dp = (-4 * C * t + 3 * c3) * t * t + c1
-    d2p = (-12 * C * t + 6 * c3) * t
-    return p, dp, d2p
+def _unit(x, y):
+    """(x, y) scaled to unit length, for |(x, y)| within ~1e-8 of 1: one Newton step for
+    the inverse square root from 1 (error ~ (|v|^2 - 1)^2), with no division."""
+    factor = 1.5 - 0.5 * (x * x + y * y)
+    return x * factor, y * factor
 
 
-def _bracketed_newton(A, B, C, lo, hi, p_lo, p_hi, t, robust):
-    """Root of P in [lo, hi], where P(lo) = p_lo and P(hi) = p_hi have opposite signs.
-
-    Bisection first, then Newton; a Newton step that would leave the bracket is replaced
-    by an Illinois false-position step (Newton overshoots a root next to a bracket end
-    where P is concave; the chord does not, and halving the value kept at a stale end
-    stops the chord from creeping), and that by bisection if it degenerates.
-    Returns the root and whether the last step was below `_STEP_TOL`.
-    """
-    sign_lo = jnp.sign(p_lo)
-
-    def bisect(_, state):
-        lo, hi, p_lo, p_hi = state
-        mid = 0.5 * (lo + hi)
-        p_mid = _poly(mid, A, B, C)[0]
-        below = jnp.sign(p_mid) == sign_lo
-        return (
-            jnp.where(below, mid, lo),
-            jnp.where(below, hi, mid),
-            jnp.where(below, p_mid, p_lo),
-            jnp.where(below, p_hi, p_mid),
-        )
-
-    state = (lo, hi, p_lo, p_hi)
-    state = jax.lax.fori_loop(0, _ROBUST_BISECTIONS if robust else _FAST_BISECTIONS, bisect, state)
-    lo, hi, p_lo, p_hi = state
-    t = jnp.clip(t, lo, hi)
-    last_below = jnp.zeros(jnp.shape(t), dtype=bool)
-    last_above = jnp.zeros(jnp.shape(t), dtype=bool)
-    step = jnp.full(jnp.shape(t), jnp.inf, dtype=t.dtype)
-
-    def newton(_, state):
-        t, lo, hi, p_lo, p_hi, last_below, last_above, step = state
-        p, dp, _ = _poly(t, A, B, C)
-        below = jnp.sign(p) == sign_lo
-        lo, p_lo = jnp.where(below, t, lo), jnp.where(below, p, p_lo)
-        hi, p_hi = jnp.where(below, hi, t), jnp.where(below, p_hi, p)
-        p_hi = jnp.where(below & last_below, 0.5 * p_hi, p_hi)
-        p_lo = jnp.where(~below & last_above, 0.5 * p_lo, p_lo)
-        last_below, last_above = below, ~below
-        t_newton = t - p / jnp.where(dp == 0, 1.0, dp)
-        newton_ok = (dp != 0) & (t_newton >= lo) & (t_newton <= hi)
-        chord = p_hi - p_lo
-        t_chord = lo - p_lo * (hi - lo) / jnp.where(chord == 0, 1.0, chord)
-        chord_ok = (chord != 0) & (t_chord >= lo) & (t_chord <= hi)
-        t_safe = jnp.where(chord_ok, t_chord, 0.5 * (lo + hi))
-        t_next = jnp.where(p == 0, t, jnp.where(newton_ok, t_newton, t_safe))
-        step = jnp.where(p == 0, 0.0, jnp.abs(t_next - t))
-        return t_next, lo, hi, p_lo, p_hi, last_below, last_above, step
-
-    state = (t, lo, hi, p_lo, p_hi, last_below, last_above, step)
-    state = jax.lax.fori_loop(0, _ROBUST_NEWTON if robust else _FAST_NEWTON, newton, state)
-    t, lo, hi, p_lo, p_hi, last_below, last_above, step = state
-    converged = (step <= _STEP_TOL) | (hi - lo <= _STEP_TOL)
-    return t, converged
-
-
-def _extremum(A, B, C, t, steps=4):
-    """Newton on P'(t) = 0 from t (used for a tangent register, a simple root of P')."""
-    for _ in range(steps):
-        _, dp, d2p = _poly(t, A, B, C)
-        t = t - dp / jnp.where(d2p == 0, 1.0, d2p)
-    return jnp.clip(t, 0.0, 1.0)
-
-
-def _solve(A, B, C, robust=False):
+def _solve(A, B, C, careful=False):
     """Primal solve.  Returns phi, cos phi, sin phi, valid (each ... x 4), continuum,
-    tangent (bool per slot: slot is a double root)."""
+    tangent (bool per slot: the slot is a double root), converged (per point)."""
     dtype = jnp.result_type(A, B, C, float)
     A, B, C = (jnp.asarray(x, dtype) for x in (A, B, C))
     A, B, C = jnp.broadcast_arrays(A, B, C)
     scale = jnp.maximum(jnp.maximum(jnp.abs(A), jnp.abs(B)), jnp.abs(C))
     continuum = scale == 0
-    scale = jnp.where(continuum, 1.0, scale)
-    a, b, c = A / scale, B / scale, C / scale
+    inv_scale = 1 / jnp.where(continuum, 1.0, scale)
+    a, b, c = A * inv_scale, B * inv_scale, C * inv_scale
 
     # Work with a >= 0: f(phi + pi/2) has coefficients (-a, -c, b).
     turn = a < 0
-    a, b, c = jnp.where(turn, -a, a), jnp.where(turn, -c, b), jnp.where(turn, b, c)
+    a, b, c = jnp.abs(a), jnp.where(turn, -c, b), jnp.where(turn, b, c)
 
-    # An exact zero of B or C (uncoupled rods) puts roots exactly on quadrant edges, where
-    # brackets meet; those cases have closed forms (`_factorable`).  The bracket path
-    # below sees them as +0 so that it stays finite, and its result is replaced.
-    factorable = (b == 0) | (c == 0)
-    sb, sc = jnp.where(b >= 0, 1.0, -1.0), jnp.where(c >= 0, 1.0, -1.0)
-    # Inside the astroid |b|^(2/3) + |c|^(2/3) < (2a)^(2/3), in polynomial form.
-    b2, c2, a2 = b * b, c * c, a * a
-    astroid = (b2 + c2 - 4 * a2) ** 3 + 108 * a2 * b2 * c2
-    near_astroid = jnp.abs(astroid) <= _TANGENT_TOL
+    # Exact (or negligible) zeros of b or c put roots exactly on the axes, where a secular
+    # pole meets its root; those cases have closed forms, and the iteration below solves a
+    # harmless stand-in for them.
+    factorable = (jnp.abs(b) <= _TINY) | (jnp.abs(c) <= _TINY)
+    sign_b = jnp.where(b < 0, -1.0, 1.0)
+    sign_c = jnp.where(c < 0, -1.0, 1.0)
+    b_it = jnp.where(factorable, 1.0, b)
+    c_it = jnp.where(factorable, 1.0, c)
+    b2, c2, a2 = b_it * b_it, c_it * c_it, a * a
 
-    k_min = _quadrant(sb, -sc)
-    k_max = _quadrant(-sb, sc)
-    k_in = _quadrant(-sb, -sc)
+    # The inner pair exists iff (b, c) is inside the astroid.  At the separator the
+    # secular function is (|b|^(2/3) + |c|^(2/3))^3 / 4a^2: below 1 a pair, 1 a tangent
+    # register.  The fast path reads the sign of the same test in polynomial form and
+    # leaves points near its zero set (and near the cusps, where it flattens) undecided.
+    if careful:
+        cb, cc = jnp.cbrt(b_it), jnp.cbrt(c_it)
+        s = cb * cb + cc * cc
+        gap = 4 * a2 - s * s * s
+        near = jnp.abs(gap) <= _TANGENT_TOL * 4 * a2
+        pair = (gap > 0) & ~near
+        tangent_point = near & (a > 0)
+        decided = jnp.ones_like(pair)
+    else:
+        astroid = (b2 + c2 - 4 * a2) ** 3 + 108 * a2 * b2 * c2
+        pair = astroid < -_TANGENT_TOL
+        decided = jnp.abs(astroid) > _TANGENT_TOL
+        tangent_point = jnp.zeros_like(pair)
 
-    # Separator of the inner quadrant (the tangent point on the astroid) and the sign
-    # of f there; every slot's bracket is then known.
-    Ai, Bi, Ci = _rotate_coeffs(a, b, c, k_in)
-    ratio = jnp.cbrt(jnp.abs(c) / jnp.where(b == 0, 1.0, jnp.abs(b)))
-    X, Y = _rotate_vector(-sb, -sc * ratio, k_in)
-    t_star = Y / (jnp.sqrt(X * X + Y * Y) + X)
-    p_star, _, d2p_star = _poly(t_star, Ai, Bi, Ci)
-    s_edge = jnp.sign(Ci)
-    # On the astroid itself (and near its cusps, where the polynomial test flattens out)
-    # the sign of f at the separator decides: opposite to the edges -> a resolved pair.
-    resolved = (p_star != 0) & (jnp.sign(p_star) == -s_edge)
-    inner_pair = (astroid < -_TANGENT_TOL) | (near_astroid & resolved)
-    inner_tangent = near_astroid & ~resolved
-    # Near a tangency the pair straddles t_star at +-sqrt(-2 P / P''): start there.
-    half_gap = jnp.sqrt(jnp.maximum(-2 * p_star / jnp.where(d2p_star == 0, 1.0, d2p_star), 0.0))
+    Q = jnp.where(_slot(_Q_IS_B), b_it[..., None], c_it[..., None])
+    P = jnp.where(_slot(_Q_IS_B), c_it[..., None], b_it[..., None])
+    inner_sign = jnp.where(pair, -1.0, 1.0)
+    e = jnp.where(_slot(_INNER), inner_sign[..., None], 1.0)
+    aa = 2 * a[..., None]
+    # Starts left of every root.  Outer branches: |Q|, and sqrt(b^2 + c^2) - 2a (here with
+    # a lower bound of the square root).  Inner: at the root P^2/(2a - nu)^2 exceeds its
+    # value at nu = |Q|, so Q^2/nu^2 is below 1 - P^2/(2a - |Q|)^2.
+    absQ = jnp.abs(Q)
+    r_low = jnp.maximum(jnp.abs(b_it), jnp.abs(c_it)) + 0.41421356 * jnp.minimum(jnp.abs(b_it), jnp.abs(c_it))
+    inner_room = 1 - P * P / jnp.square(jnp.where(e > 0, 1.0, aa - absQ))
+    nu0 = jnp.where(e > 0, jnp.maximum(absQ, r_low[..., None] - aa), absQ / jnp.sqrt(jnp.maximum(inner_room, 1e-300)))
+    needed = ~(_slot(_INNER) & ~pair[..., None])
+    nu, done = _secular_solve(nu0, 2 * a, b2, c2, inner_sign, needed, careful)
+    converged = (jnp.all(done | ~needed, axis=-1) & decided) | factorable | continuum
 
-    # All four brackets as one batch (trailing axis 4: the global minimum, the global
-    # maximum, the left and the right root of the inner pair), so that the iteration is
-    # written once.  P(0) = C_k and P(1) = 4 B_k; the outer brackets start from their chord.
-    k = jnp.stack([k_min, k_max, k_in, k_in], axis=-1)
-    Ak, Bk, Ck = _rotate_coeffs(a[..., None], b[..., None], c[..., None], k)
-    zeros = jnp.zeros_like(Ak)
-    ones = jnp.ones_like(Ak)
-    ts = t_star[..., None]
-    ps = p_star[..., None]
-    left = jnp.array([True, True, True, False])
-    right = jnp.array([True, True, False, True])
-    lo = jnp.where(left, 0.0, ts) + zeros
-    hi = jnp.where(right, 1.0, ts) + zeros
-    p_lo = jnp.where(left, Ck, ps)
-    p_hi = jnp.where(right, 4 * Bk, ps)
-    hg = half_gap[..., None]
-    t_chord = Ck / (Ck - 4 * Bk)
-    t0 = jnp.where(
-        jnp.arange(4) < 2, t_chord, jnp.where(left, jnp.clip(ts - hg, 0.0, ts), jnp.clip(ts + hg, ts, 1.0))
-    )
-    t, ok = _bracketed_newton(Ak, Bk, Ck, lo, hi, p_lo, p_hi, t0, robust)
-    t_lo, t_hi = t[..., 2], t[..., 3]
-    # f runs from s_edge through -s_edge back to s_edge, so f' < 0 at t_lo iff s_edge > 0:
-    # the stable (local minimum, f' > 0) root of the pair goes to slot 2.
-    t_stable = jnp.where(s_edge < 0, t_lo, t_hi)
-    t_unstable = jnp.where(s_edge < 0, t_hi, t_lo)
-    t_stable = jnp.where(inner_tangent, _extremum(Ai, Bi, Ci, t_star), t_stable)
-    t = jnp.stack([t[..., 0], t[..., 1], t_stable, t_unstable], axis=-1)
-    inner_ok = (ok[..., 2] & ok[..., 3]) | ~inner_pair
-    converged = (ok[..., 0] & ok[..., 1] & inner_ok) | factorable | continuum
-    ones = jnp.ones_like(a)
-    valid = jnp.stack([ones > 0, ones > 0, inner_pair | inner_tangent, inner_pair], axis=-1)
-    tangent = jnp.zeros_like(valid).at[..., 2].set(inner_tangent)
+    # The register from nu: (x, y) from Q/nu and P/d, one division for both.
+    d = aa + e * nu
+    inv = 1 / (nu * d)
+    U = _slot(_SIGN_U) * Q * d * inv
+    V = -P * nu * inv
+    x, y = _unit(jnp.where(_slot(_SWAP), V, U), jnp.where(_slot(_SWAP), U, V))
+    tangent = _slot((False, False, True, False)) & tangent_point[..., None]
+    if careful:
+        # A tangent register (slot 2) is the separator, direction -(cbrt b, cbrt c).
+        tx, ty = -cb[..., None], -cc[..., None]
+        tnorm = jax.lax.rsqrt(tx * tx + ty * ty)
+        x = jnp.where(tangent, tx * tnorm, x)
+        y = jnp.where(tangent, ty * tnorm, y)
+        # One Newton step on f(phi) itself, as a rotation by -f/f': full accuracy where
+        # Newton on nu stopped short of round-off (a root close to a tangency).
+        a_, b_, c_ = a[..., None], b_it[..., None], c_it[..., None]
+        f = 2 * a_ * x * y + b_ * y + c_ * x
+        fp = 2 * a_ * (x * x - y * y) + b_ * x - c_ * y
+        rotation = -f / jnp.where(fp == 0, 1.0, fp)
+        rotation = jnp.where((jnp.abs(rotation) <= _POLISH_LIMIT) & ~tangent, rotation, 0.0)
+        x, y = _unit(x - rotation * y, y + rotation * x)
+    always = jnp.ones_like(pair)
+    valid = jnp.stack([always, always, pair | tangent_point, pair], axis=-1)
 
-    t2 = t * t
-    cos_psi = (1 - t2) / (1 + t2)
-    sin_psi = 2 * t / (1 + t2)
-    k = k % 4
-    cos_phi = jnp.select([k == 0, k == 1, k == 2], [cos_psi, -sin_psi, -cos_psi], sin_psi)
-    sin_phi = jnp.select([k == 0, k == 1, k == 2], [sin_psi, cos_psi, -sin_psi], -cos_psi)
-
-    f_cos, f_sin, f_valid, f_tangent = _factorable(a, b, c)
+    f_cos, f_sin, f_valid = _factorable(a, b, c, sign_b, sign_c)
     pick = factorable[..., None]
-    cos_phi = jnp.where(pick, f_cos, cos_phi)
-    sin_phi = jnp.where(pick, f_sin, sin_phi)
+    cos_phi = jnp.where(pick, f_cos, x)
+    sin_phi = jnp.where(pick, f_sin, y)
     valid = jnp.where(pick, f_valid, valid)
-    tangent = jnp.where(pick, f_tangent, tangent)
+    tangent = tangent & ~pick
 
     # Undo the quarter turn taken to make a >= 0: phi = phi' + pi/2.
     turn = turn[..., None]
@@ -266,41 +287,34 @@ def _solve(A, B, C, robust=False):
 
 
 def _solve_all(A, B, C):
-    """Fast path everywhere; the few points it leaves unconverged are gathered (to a
-    static budget, `size // 64 + 16`) and re-solved by the robust path, or, when there
-    are more of them, the robust path runs on the whole batch."""
+    """Fast path over any shape, a cache-sized chunk of points at a time; then the points
+    it leaves unconverged re-solved by the careful path, gathered from the whole batch
+    `_FALLBACK_BATCH` at a time (so that their cost follows their number)."""
     A, B, C = jnp.broadcast_arrays(*(jnp.asarray(x, jnp.result_type(A, B, C, float)) for x in (A, B, C)))
     shape = A.shape
     n = A.size
     A, B, C = A.reshape(n), B.reshape(n), C.reshape(n)
-    *fast, converged = map_chunks(_solve, (A, B, C), n)
-    budget = n // 64 + 16
-    if n <= budget:
-        robust = _solve(A, B, C, robust=True)[:-1]
-        out = tuple(jnp.where(_expand(converged, f), f, r) for f, r in zip(fast, robust))
-        return tuple(x.reshape(shape + x.shape[1:]) for x in out)
-    bad = ~converged
-    n_bad = jnp.sum(bad)
+    *out, converged = map_chunks(_solve, (A, B, C), n)
+    if n > 0:
+        batch = min(n, _FALLBACK_BATCH)
+        bad = ~converged
+        n_bad = jnp.sum(bad)
+        (order,) = jnp.nonzero(bad, size=n, fill_value=0)
 
-    def gathered():
-        (idx,) = jnp.nonzero(bad, size=budget, fill_value=0)
-        redo = _solve(A[idx], B[idx], C[idx], robust=True)[:-1]
-        # Unused budget slots point at index 0 with its fast result, so they rewrite it
-        # unchanged unless index 0 itself was bad (then it is in idx too, same value).
-        keep = bad[idx]
-        return tuple(
-            f.at[idx].set(jnp.where(_expand(keep, r), r, f[idx])) for f, r in zip(fast, redo)
-        )
+        def unfinished(carry):
+            return carry[0] * batch < n_bad
 
-    def everywhere():
-        robust = map_chunks(functools.partial(_solve, robust=True), (A, B, C), n)[:-1]
-        return tuple(jnp.where(_expand(bad, f), r, f) for f, r in zip(fast, robust))
+        def resolve(carry):
+            k, out = carry
+            idx = jax.lax.dynamic_slice(order, (k * batch,), (batch,))
+            redo = _solve(A[idx], B[idx], C[idx], careful=True)[:-1]
+            # Slots past the last bad point hold index 0, or (at the end of `order`)
+            # repeat bad points: either way they rewrite a value with itself.
+            keep = bad[idx]
+            out = tuple(o.at[idx].set(jnp.where(_expand(keep, r), r, o[idx])) for o, r in zip(out, redo))
+            return k + 1, out
 
-    out = jax.lax.cond(
-        n_bad == 0,
-        lambda: tuple(fast),
-        lambda: jax.lax.cond(n_bad <= budget, gathered, everywhere),
-    )
+        out = jax.lax.while_loop(unfinished, resolve, (0, tuple(out)))[1]
     return tuple(x.reshape(shape + x.shape[1:]) for x in out)
 
 
@@ -322,35 +336,37 @@ def _angle(cos_phi, sin_phi):
     return jnp.where(phi >= 2 * jnp.pi, phi - 2 * jnp.pi, phi)
 
 
-def _factorable(a, b, c):
-    """Closed-form registers when b = 0 or c = 0 (a >= 0), in the slot order of `_solve`.
+def _factorable(a, b, c, sign_b, sign_c):
+    """Closed-form registers when b = 0 or c = 0 (a >= 0), in slot order; `sign_b`,
+    `sign_c` (+-1) choose among tied registers the way of the limit from that side.
 
     c = 0: $f = \\sin\\varphi\\,(2a\\cos\\varphi + b)$: roots 0 and pi (energies
     $G = -a/2 \\mp b$) and, if $|b| < 2a$, the pair $\\cos\\varphi = -b/2a$, which are the
-    (equal) maxima of $G = -\\tfrac a2 \\cos 2\\varphi - b\\cos\\varphi + c\\sin\\varphi$.
+    (equal) maxima of $G = -\\tfrac a2 \\cos 2\\varphi - b\\cos\\varphi + c\\sin\\varphi$; a small
+    $c$ makes the one with $\\operatorname{sgn}\\sin\\varphi = \\operatorname{sgn} c$ the global one.
     b = 0: $f = \\cos\\varphi\\,(2a\\sin\\varphi + c)$: roots pi/2 and 3pi/2 and, if
-    $|c| < 2a$, the pair $\\sin\\varphi = -c/2a$, the (equal) minima.  Ties go the way of
-    the limit from positive b, c.
+    $|c| < 2a$, the pair $\\sin\\varphi = -c/2a$, the (equal) minima; a small $b$ makes the one
+    with $\\operatorname{sgn}\\cos\\varphi = \\operatorname{sgn} b$ the global one.
     """
+    c_zero = jnp.abs(c) <= jnp.abs(b)
     safe_a = jnp.where(a > 0, a, 1.0)
-    c_zero = c == 0
     q = jnp.where(c_zero, -b, -c) / (2 * safe_a)
     pair = (a > 0) & (jnp.abs(q) < 1)
     r = jnp.sqrt(jnp.maximum(1 - q * q, 0.0))
-    one, zero = jnp.ones_like(q), jnp.zeros_like(q)
+    zero = jnp.zeros_like(q)
     # c = 0: axis roots (+-1, 0); the lower-energy one is phi = 0 when b >= 0.
-    s_b = jnp.where(b >= 0, 1.0, -1.0)
-    cz_cos = jnp.stack([s_b, jnp.where(pair, q, -s_b), -s_b, q], -1)
-    cz_sin = jnp.stack([zero, jnp.where(pair, r, zero), zero, -r], -1)
+    rc = sign_c * r
+    cz_cos = jnp.stack([sign_b, jnp.where(pair, q, -sign_b), -sign_b, q], -1)
+    cz_sin = jnp.stack([zero, jnp.where(pair, rc, zero), zero, -rc], -1)
     # b = 0: axis roots (0, +-1); the higher-energy one is phi = pi/2 when c >= 0.
-    s_c = jnp.where(c >= 0, 1.0, -1.0)
-    bz_cos = jnp.stack([jnp.where(pair, r, zero), zero, -r, zero], -1)
-    bz_sin = jnp.stack([jnp.where(pair, q, -s_c), s_c, q, -s_c], -1)
+    rb = sign_b * r
+    bz_cos = jnp.stack([jnp.where(pair, rb, zero), zero, -rb, zero], -1)
+    bz_sin = jnp.stack([jnp.where(pair, q, -sign_c), sign_c, q, -sign_c], -1)
     pick = c_zero[..., None]
     cos_phi = jnp.where(pick, cz_cos, bz_cos)
     sin_phi = jnp.where(pick, cz_sin, bz_sin)
     valid = (jnp.arange(4) < 2) | pair[..., None]
-    return cos_phi, sin_phi, valid, jnp.zeros_like(valid)
+    return cos_phi, sin_phi, valid
 
 
 @jax.custom_jvp

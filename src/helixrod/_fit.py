@@ -948,9 +948,11 @@ class Bootstrap(eqx.Module):
 
     @property
     def std(self) -> dict:
+        """Standard deviation of the replicates (converged ones) by parameter name."""
         return {n: jnp.asarray(np.nanstd(np.asarray(v), ddof=1)) for n, v in self.samples.items()}
 
     def interval(self, level: float = 0.95) -> dict[str, tuple[float, float]]:
+        """Percentile interval `(lower, upper)` holding `level` of the replicates, by name."""
         lo, hi = 50 * (1 - level), 50 * (1 + level)
         return {n: (float(np.nanpercentile(v, lo)), float(np.nanpercentile(v, hi))) for n, v in self.samples.items()}
 

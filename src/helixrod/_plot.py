@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+#: The eight colours of Okabe & Ito (2008), distinguishable with every common colour-vision
+#: deficiency, as hex strings; categorical colours of every helixrod figure.
 OKABE_ITO = ["#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#F0E442", "#000000"]
 
 

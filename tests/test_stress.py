@@ -5,8 +5,8 @@ Every test states the behaviour it checks (the "contract") and the bound it asse
 bounds are the documented accuracies of the README's Validation section, where the
 measured maxima are listed too (`pytest tests/test_stress.py -s` prints them).
 
-Cost: every jitted function here is compiled once and shared (fixed batch size `N`); the
-long cases are `@pytest.mark.slow`.
+Cost: every jitted function here is compiled once and shared (fixed batch size `N`); no case
+needs `@pytest.mark.slow` (10^4 turns of a helix take a fraction of a second).
 """
 
 from __future__ import annotations
@@ -108,12 +108,13 @@ def mp_f(A, B, C, p):
 
 def mp_equilibria(params, kappa, tau):
     """(phi, F, M) of every register of the rod `params` = (K1, K2, K3, K13, K23, u1, u2, u3)
-    at (kappa, tau), in 50-digit arithmetic from the exact float64 inputs, straight from
+    at (kappa, tau), in 30-digit arithmetic from the exact float64 inputs, straight from
     DESIGN.md: A = (K1 - K2) kappa/2, B = K2 u2 + K23 (u3 - tau), C = K13 (tau - u3) - K1 u1;
     u = (kappa sin p, kappa cos p, tau), m = K (u - uhat), mu1 = (m1 u1 + m2 u2)/kappa^2,
-    mu2 = m3 - mu1 tau, F = mu2 |u|, M = mu1 |u| + mu2 tau/|u|."""
+    mu2 = m3 - mu1 tau, F = n.a = mu2 |u| and M = m.a = m.u/|u| (the definition; it equals
+    mu1 |u| + mu2 tau/|u| at an equilibrium without that form's cancellation as kappa -> 0)."""
     K1, K2, K3, K13, K23, u1h, u2h, u3h = (mpmath.mpf(float(x)) for x in params)
-    k, t = mpmath.mpf(float(kappa)), mpmath.mpf(float(tau))
+    k, t = (x if isinstance(x, mpmath.mpf) else mpmath.mpf(float(x)) for x in (kappa, tau))
     A = (K1 - K2) * k / 2
     B = K2 * u2h + K23 * (u3h - t)
     C = K13 * (t - u3h) - K1 * u1h
@@ -125,7 +126,7 @@ def mp_equilibria(params, kappa, tau):
         mu1 = (m[0] * u[0] + m[1] * u[1]) / k**2
         mu2 = m[2] - mu1 * t
         norm = mpmath.sqrt(k**2 + t**2)
-        out.append((p, mu2 * norm, mu1 * norm + mu2 * t / norm))
+        out.append((p, mu2 * norm, (m[0] * u[0] + m[1] * u[1] + m[2] * u[2]) / norm))
     return out
 
 
@@ -188,7 +189,7 @@ GENERIC = (1.0, 1.5, 0.8, 0.3, -0.2, 0.4, -0.3, 0.2)
 
 
 def _pair_coefficients(p0, gap, A=1.0):
-    """Float64 (A, B, C) whose exact (50-digit) register pair sits at p0 -+ gap, rounded."""
+    """Float64 (A, B, C) whose exact (30-digit) register pair sits at p0 -+ gap, rounded."""
     ps = [mpmath.mpf(p0) - mpmath.mpf(gap), mpmath.mpf(p0) + mpmath.mpf(gap)]
     M = mpmath.matrix([[mpmath.sin(p), mpmath.cos(p)] for p in ps])
     B, C = mpmath.lu_solve(M, mpmath.matrix([-A * mpmath.sin(2 * p) for p in ps]))
@@ -245,7 +246,7 @@ _GAPS = [1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12]
 
 @pytest.mark.parametrize("gap", _GAPS)
 def test_near_tangent_pairs(gap):
-    """Pairs constructed analytically at p0 -+ gap (50 digits) and rounded to float64.
+    """Pairs constructed analytically at p0 -+ gap (30 digits) and rounded to float64.
     Below gap ~ 1e-8 the rounding of B, C (relative eps) moves the pair by ~sqrt(eps): the
     float64 problem then has a pair ~1e-8 apart or none, and its exact roots are the
     reference.  Expected: the contract of `_check_near_tangent`, and the analytic pair
@@ -301,7 +302,7 @@ def test_exact_tangency():
 def test_K1_minus_K2_to_zero():
     """K2 = K1 (1 + rel), rel = 1e-2 ... 1e-14, for a coupled, curved rod at several helices:
     A -> 0 and the quartic degenerates (the inner pair leaves through the astroid's cusp).
-    Expected: register count and registers as the 50-digit reference, phi to 1e-12 and the
+    Expected: register count and registers as the 30-digit reference, phi to 1e-12 and the
     wrench to 1e-12 (normwise; `compare_with_mp`); at rel = 0 exactly, two registers."""
     params, kappa, tau = [], [], []
     for rel in [1e-2, 1e-4, 1e-6, 1e-8, 1e-10, 1e-12, 1e-14, 0.0]:
@@ -441,7 +442,7 @@ _MOMENT_CANCELLATION = (
 def test_moment_cancellation_small_kappa():
     """The axial moment M of curved and coupled rods as kappa -> 0 (1e-4 ... 1e-10): expected,
     like F, within 1e-12 of mpmath relative to max(|M|, natural scale), and dM/dkappa at
-    kappa = 1e-10 by forward and reverse mode within 1e-6 of a 40-digit central difference."""
+    kappa = 1e-10 by forward and reverse mode within 1e-6 of a 30-digit central difference."""
     cases = list(EDGES.values())  # the inputs of test_gradients_finite_at_the_edges: one compilation
     i = list(EDGES).index("kappa = 1e-10")
     args = (jnp.asarray([c[0] for c in cases]), jnp.asarray([c[1] for c in cases]), jnp.asarray([c[2] for c in cases]))
@@ -595,7 +596,7 @@ def _ode(rod, n0, m0, length, frame0, x0):
 
 def _exact_helix(kappa, tau, phi, length):
     """Frame and centreline of the uniform helix at s = length: the rotation angle |u| L and
-    its sine and cosine in 50 digits (float64 would lose eps |u| L), the fixed initial frame
+    its sine and cosine in 30 digits (float64 would lose eps |u| L), the fixed initial frame
     from `helix_frame` at s = 0."""
     k, t, L = (mpmath.mpf(float(x)) for x in (kappa, tau, length))
     norm = mpmath.sqrt(k * k + t * t)

@@ -133,7 +133,7 @@ def main():
         tau = rng.uniform(-1.5, 2.0, n)
         for noise in noises:
             data = hr.synthetic_helix_data(ROD, kappa, tau, noise, jax.random.key(n))
-            B, C = _fit._isotropic_init(data, 0.0)
+            B, C = _fit._isotropic_init(data, (0.0, 0.0, 0.0))
             ks = B
             z0 = np.array([0.0, 0.0, np.log(C / ks), 0.0, 0.0])
             for label, kw in (("helixrod LM, 1 start", dict(n_starts=1)), ("helixrod LM, 32 starts", dict(n_starts=32))):

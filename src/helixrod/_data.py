@@ -39,10 +39,11 @@ CSV_COLUMNS = (
     "moment_sigma",
     "kappa_sigma",
     "tau_sigma",
+    "kappa_tau_correlation",
     "register",
     "register_sigma",
 )
-_OPTIONAL = ("kappa_sigma", "tau_sigma", "register", "register_sigma")
+_OPTIONAL = ("kappa_sigma", "tau_sigma", "kappa_tau_correlation", "register", "register_sigma")
 
 
 class HelixData(eqx.Module):
@@ -51,7 +52,9 @@ class HelixData(eqx.Module):
     Fields (each shape `(n,)`, float64): `force` $F$, `moment` $M$, `kappa` $\\kappa > 0$,
     `tau` $\\tau$, and the standard deviations `force_sigma`, `moment_sigma` (a scalar
     broadcasts to every point).  Optional (`None` when absent): `kappa_sigma`, `tau_sigma`
-    (errors in the abscissae, used by `fit_stiffness(..., errors_in_variables=True)`),
+    (errors in the abscissae, used by `fit_stiffness(..., errors_in_variables=True)`) and
+    `kappa_tau_correlation` (their correlation coefficient, in $[-1, 1]$; e.g. $\\kappa$ and
+    $\\tau$ computed from the same two noisy observables),
     `register` $\\varphi$ of each helix if it was observed, and `register_sigma`
     (then the fit also matches $\\varphi$).  `units` maps column names to unit strings
     (free text, carried to and from CSV, never converted).
@@ -78,6 +81,7 @@ class HelixData(eqx.Module):
     moment_sigma: Float[Array, " n"]
     kappa_sigma: Float[Array, " n"] | None
     tau_sigma: Float[Array, " n"] | None
+    kappa_tau_correlation: Float[Array, " n"] | None
     register: Float[Array, " n"] | None
     register_sigma: Float[Array, " n"] | None
     unit_labels: tuple = eqx.field(static=True)
@@ -93,6 +97,7 @@ class HelixData(eqx.Module):
         *,
         kappa_sigma: ArrayLike | None = None,
         tau_sigma: ArrayLike | None = None,
+        kappa_tau_correlation: ArrayLike | None = None,
         register: ArrayLike | None = None,
         register_sigma: ArrayLike | None = None,
         units: dict | None = None,
@@ -115,6 +120,7 @@ class HelixData(eqx.Module):
         optional = {
             "kappa_sigma": kappa_sigma,
             "tau_sigma": tau_sigma,
+            "kappa_tau_correlation": kappa_tau_correlation,
             "register": register,
             "register_sigma": register_sigma,
         }
@@ -129,6 +135,8 @@ class HelixData(eqx.Module):
             arrays[name] = a
         if register_sigma is not None and register is None:
             raise ValueError("HelixData: register_sigma given without register")
+        if kappa_tau_correlation is not None and (kappa_sigma is None or tau_sigma is None):
+            raise ValueError("HelixData: kappa_tau_correlation needs both kappa_sigma and tau_sigma")
         bad_rows = {}
         for name, a in arrays.items():
             rows = np.flatnonzero(~np.isfinite(a))
@@ -145,6 +153,9 @@ class HelixData(eqx.Module):
             if name in arrays and np.any(arrays[name] <= 0):
                 rows = np.flatnonzero(arrays[name] <= 0)
                 raise ValueError(f"HelixData: {name} must be > 0; rows {rows[:20].tolist()} are not")
+        if "kappa_tau_correlation" in arrays and np.any(np.abs(arrays["kappa_tau_correlation"]) > 1):
+            rows = np.flatnonzero(np.abs(arrays["kappa_tau_correlation"]) > 1)
+            raise ValueError(f"HelixData: kappa_tau_correlation must be in [-1, 1]; rows {rows[:20].tolist()} are not")
         if np.any(arrays["kappa"] <= 0):
             rows = np.flatnonzero(arrays["kappa"] <= 0)
             raise ValueError(
@@ -191,7 +202,7 @@ class HelixData(eqx.Module):
 
         Format: lines starting with `#` are comments.  The first other line is the header,
         a comma-separated subset of `force, moment, kappa, tau, force_sigma, moment_sigma,
-        kappa_sigma, tau_sigma, register, register_sigma` in any order (the first four are
+        kappa_sigma, tau_sigma, kappa_tau_correlation, register, register_sigma` in any order (the first four are
         required; the sigma columns may instead be given as arguments, which then
         override).  The next line may be a units line: same columns, unit strings (e.g.
         `pN,pN nm,1/nm,1/nm,pN,pN nm`); it is recognised by its first cell not being a
@@ -254,6 +265,7 @@ class HelixData(eqx.Module):
             ms,
             kappa_sigma=col.get("kappa_sigma"),
             tau_sigma=col.get("tau_sigma"),
+            kappa_tau_correlation=col.get("kappa_tau_correlation"),
             register=col.get("register"),
             register_sigma=col.get("register_sigma"),
             units=units,

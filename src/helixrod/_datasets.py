@@ -64,6 +64,28 @@ class TweezerExample(eqx.Module):
     moduli: tuple[Float[Array, ""], Float[Array, ""], Float[Array, ""]]
     provenance: str = eqx.field(static=True)
 
+    def helix_data(self, force_sigma: float = 1e-3, moment_sigma: float = 1e-2):
+        """The data as `HelixData` for `fit_stiffness(..., errors_in_variables=True)`:
+        applied force (pN) and torque (pN nm) at the observed helices, with the sigmas and
+        the correlation of `kappa`, `tau` propagated from the observables' noise.  In this
+        synthetic set the force and torque are exact; their (small) sigmas here only keep
+        the weights finite, so that the fit's errors come from the observables."""
+        from ._data import HelixData
+
+        return HelixData(
+            self.force,
+            self.moment,
+            self.kappa,
+            self.tau,
+            force_sigma,
+            moment_sigma,
+            kappa_sigma=self.kappa_sigma,
+            tau_sigma=self.tau_sigma,
+            kappa_tau_correlation=self.kappa_tau_correlation,
+            units={"force": "pN", "moment": "pN nm", "kappa": "1/nm", "tau": "1/nm", "force_sigma": "pN",
+                   "moment_sigma": "pN nm", "kappa_sigma": "1/nm", "tau_sigma": "1/nm", "kappa_tau_correlation": "-"},
+        )
+
 
 class SpringExample(eqx.Module):
     """A synthetic load test of a steel open-coiled helical spring (see `load_spring_example`).

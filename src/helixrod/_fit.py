@@ -184,6 +184,7 @@ def _data_arrays(data: HelixData, problem: _Problem):
         zero = jnp.zeros_like(data.kappa)
         arrays["kappa_sigma"] = zero if data.kappa_sigma is None else data.kappa_sigma
         arrays["tau_sigma"] = zero if data.tau_sigma is None else data.tau_sigma
+        arrays["kappa_tau_correlation"] = zero if data.kappa_tau_correlation is None else data.kappa_tau_correlation
     return arrays
 
 
@@ -287,25 +288,43 @@ def _branch_residuals(p_full, arrays, spec: _Spec):
     """Normalised residuals (F, M[, register]) of every point, and the chosen slot."""
     rod = _rod_from_vector(p_full)
     kappa, tau = arrays["kappa"], arrays["tau"]
-    sF, sM = arrays["force_sigma"], arrays["moment_sigma"]
+    sF, sM = arrays["force_sigma"][:, None], arrays["moment_sigma"][:, None]
+    eq = helix_equilibria(rod, kappa, tau)
+    errF = eq.force - arrays["force"][:, None]
+    errM = eq.moment - arrays["moment"][:, None]
     if spec.errors_in_variables:
-        # Effective variance: first-order propagation of the sigma of kappa and tau into
-        # F and M (their correlation is neglected).
+        # Effective variance: first-order propagation of the errors of kappa and tau (with
+        # their correlation) into the 2x2 covariance of the model's (F, M) at each register,
+        # added to that of the observed (F, M); the residual pair is whitened by its
+        # Cholesky factor (Orear, Am. J. Phys. 50 (1982) 912, in two dimensions).  As in the
+        # effective-variance method the weights are held fixed in the Jacobian (no
+        # gradient through the propagated covariance), which also spares XLA a second
+        # derivative of the register solver.
         def wrench(k, t):
-            eq = helix_equilibria(rod, k, t)
+            eq = helix_equilibria(jax.lax.stop_gradient(rod), k, t)
             return eq.force, eq.moment
 
-        ones = jnp.ones_like(kappa)
-        _, (dF_dk, dM_dk) = jax.jvp(lambda k: wrench(k, tau), (kappa,), (ones,))
-        _, (dF_dt, dM_dt) = jax.jvp(lambda t: wrench(kappa, t), (tau,), (ones,))
+        # One linearisation, applied to both directions (one more trace of the solver, not two).
+        _, linear = jax.linearize(wrench, kappa, tau)
+        ones, zeros = jnp.ones_like(kappa), jnp.zeros_like(kappa)
+        dF_dk, dM_dk = linear(ones, zeros)
+        dF_dt, dM_dt = linear(zeros, ones)
         ks, ts = arrays["kappa_sigma"][:, None], arrays["tau_sigma"][:, None]
-        sF = jnp.sqrt(sF[:, None] ** 2 + (dF_dk * ks) ** 2 + (dF_dt * ts) ** 2)
-        sM = jnp.sqrt(sM[:, None] ** 2 + (dM_dk * ks) ** 2 + (dM_dt * ts) ** 2)
+        ckt = arrays["kappa_tau_correlation"][:, None] * ks * ts
+
+        def propagated(a_k, a_t, b_k, b_t):
+            return a_k * b_k * ks * ks + (a_k * b_t + a_t * b_k) * ckt + a_t * b_t * ts * ts
+
+        cFF = sF**2 + propagated(dF_dk, dF_dt, dF_dk, dF_dt)
+        cMM = sM**2 + propagated(dM_dk, dM_dt, dM_dk, dM_dt)
+        cFM = propagated(dF_dk, dF_dt, dM_dk, dM_dt)
+        l11 = jnp.sqrt(cFF)
+        l21 = cFM / l11
+        l22 = jnp.sqrt(jnp.maximum(cMM - l21 * l21, sM**2 * 1e-12))
+        rF = errF / l11
+        rM = (errM - l21 * rF) / l22
     else:
-        sF, sM = sF[:, None], sM[:, None]
-    eq = helix_equilibria(rod, kappa, tau)
-    rF = (eq.force - arrays["force"][:, None]) / sF
-    rM = (eq.moment - arrays["moment"][:, None]) / sM
+        rF, rM = errF / sF, errM / sM
     residuals = [rF, rM]
     if spec.use_register:
         dphi = jnp.remainder(eq.phi - arrays["register"][:, None] + jnp.pi, 2 * jnp.pi) - jnp.pi
@@ -687,14 +706,24 @@ def _summarise(
 # -- initial values -----------------------------------------------------------------------
 
 
-def _isotropic_init(data: HelixData, u3: float):
-    """Weighted linear least squares for an isotropic rod (K1 = K2 = B, K3 = C, no coupling,
-    uhat = (0, 0, u3)): $F = |u|(C(\\tau - \\hat u_3) - B\\tau)$,
-    $M = (B\\kappa^2 + C(\\tau - \\hat u_3)\\tau)/|u|$ (every register alike), linear in B, C."""
+def _isotropic_init(data: HelixData, uhat):
+    """Weighted linear least squares for an isotropic rod (K1 = K2 = B, K3 = C, no coupling)
+    with intrinsic twist `uhat`.  Its energy-minimising register puts the bending of the
+    helix along the intrinsic one, $(\\sin\\varphi, \\cos\\varphi) \\parallel (\\hat u_1, \\hat u_2)$;
+    with $\\rho = |(\\hat u_1, \\hat u_2)|$ there
+    $F = |u|\\,(C(\\tau - \\hat u_3) - B\\tau(\\kappa - \\rho)/\\kappa)$ and
+    $M = (B(\\kappa - \\rho)\\kappa + C(\\tau - \\hat u_3)\\tau)/|u|$ (Love's formulas for
+    $\\rho = 0$), linear in B and C."""
+    u1, u2, u3 = (float(x) for x in uhat)
+    rho = float(np.hypot(u1, u2))
     k, t = np.asarray(data.kappa), np.asarray(data.tau)
     norm = np.hypot(k, t)
+    bend = (k - rho) / k
     sF, sM = np.asarray(data.force_sigma), np.asarray(data.moment_sigma)
-    A = np.concatenate([np.stack([-norm * t, norm * (t - u3)], 1) / sF[:, None], np.stack([k * k / norm, (t - u3) * t / norm], 1) / sM[:, None]])
+    A = np.concatenate([
+        np.stack([-norm * t * bend, norm * (t - u3)], 1) / sF[:, None],
+        np.stack([k * k * bend / norm, (t - u3) * t / norm], 1) / sM[:, None],
+    ])
     b = np.concatenate([np.asarray(data.force) / sF, np.asarray(data.moment) / sM])
     (B, C), *_ = np.linalg.lstsq(A, b, rcond=None)
     # A crude floor: the data may favour a negative value of a poorly seen stiffness.
@@ -792,8 +821,9 @@ def fit_stiffness(
     - `use_register`: match the observed registers (`data.register`): the branch becomes
       the register nearest in angle, and, if `data.register_sigma` is given, the angle is
       a residual too.  Default: on when the data carry `register_sigma`.
-    - `errors_in_variables`: propagate `data.kappa_sigma`, `tau_sigma` into effective sigmas
-      of F and M (first order, correlations neglected).
+    - `errors_in_variables`: propagate `data.kappa_sigma`, `tau_sigma` (and
+      `kappa_tau_correlation`) to first order into an effective 2x2 covariance of (F, M)
+      at each register; the residual pair is whitened by it.
     - `method`: `"levenberg-marquardt"` (optimistix, default), `"gauss-newton"`
       (optimistix), `"lbfgs"`, `"adam"` (optax, on $\\tfrac12\\sum r^2$; for comparison).
     - `absolute_sigma`: True (default) trusts the sigmas; False scales the covariance by
@@ -830,9 +860,9 @@ def fit_stiffness(
     if errors_in_variables and data.kappa_sigma is None and data.tau_sigma is None:
         raise ValueError("errors_in_variables=True needs kappa_sigma and/or tau_sigma in the data")
     free, fixed = _resolve_fixed(uhat, fit_uhat, fix)
-    u3 = fixed.get("uhat3", 0.0)
-    B, C = _isotropic_init(data, u3)
-    default = np.array([B, B, C, 0.0, 0.0, 0.0, 0.0, u3])
+    u_init = [fixed.get(f"uhat{i}", 0.0) for i in (1, 2, 3)]
+    B, C = _isotropic_init(data, u_init)
+    default = np.array([B, B, C, 0.0, 0.0, *u_init])
     p0 = _as_vector(init, fixed, default)
     k_scale = float(np.sqrt(p0[0] * p0[1]))
     u_scale = float(np.median(np.hypot(np.asarray(data.kappa), np.asarray(data.tau))))

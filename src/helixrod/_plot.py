@@ -25,7 +25,7 @@ def plot_hyperboloid(rod, path=None, *, u3_slice=1.5, radii=None, extent=3.0):
         m = np.asarray(rod.moment(u))
         return m[..., 0] * u2 - m[..., 1] * u1
 
-    fig = Figure(figsize=(11, 5), layout="constrained")  # no pyplot: no backend change
+    fig = Figure(figsize=(11, 5), layout="constrained")
     ax3 = fig.add_subplot(1, 2, 1, projection="3d")
     g = np.linspace(-extent, extent, 121)
     # The hyperboloid is linear in u3 at fixed (u1, u2): solve for u3 to draw it.
@@ -64,23 +64,19 @@ def plot_hyperboloid(rod, path=None, *, u3_slice=1.5, radii=None, extent=3.0):
     ax.set_ylabel("$u_2$")
     ax.set_title(f"slice $u_3 = {u3_slice:g}$: registers (filled: stable)")
     ax.legend(loc="upper right")
-    if path is None:
-        return fig
-    fig.savefig(path, dpi=120)
-    return path
+    return _finish(fig, path)
 
 
 # -- inverse spring problem (issue 4) ------------------------------------------------------
-def plot_fit(data, fit, path):
+def plot_fit(data, fit, path=None):
     """Observed against predicted axial force and moment of a `StiffnessFit` (error bars:
-    the data's sigmas; the diagonal is a perfect fit), and the normalised residuals.
-    Writes a PNG to `path`."""
-    import matplotlib
+    the data's sigmas of F and M; the diagonal is a perfect fit), and the normalised
+    residuals (whitened pairs for an errors-in-variables fit).  `path=None` returns the
+    matplotlib `Figure`; otherwise writes it (PNG/PDF/SVG by suffix) and returns `path`."""
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2))
+    fig = Figure(figsize=(13, 4.2), layout="constrained")
+    axes = fig.subplots(1, 3)
     n = len(data)
     r = np.asarray(fit.residuals)
     for ax, obs, pred, sig, label, colour in (
@@ -100,10 +96,8 @@ def plot_fit(data, fit, path):
     axes[2].set_ylabel("residual / sigma")
     axes[2].legend()
     fig.suptitle(f"fit_stiffness: cost = {float(fit.cost):.4g}, reduced chi2 = {float(fit.chi2_reduced):.3g}")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _finish(fig, path)
+
 
 # -- the kappa-tau atlas (issue 5) --------------------------------------------------------
 # These figures use matplotlib's object-oriented API (`matplotlib.figure.Figure`), never

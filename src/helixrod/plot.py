@@ -7,6 +7,7 @@ returned, otherwise the ``matplotlib.figure.Figure`` is returned.
 from ._plot import (
     OKABE_ITO as OKABE_ITO,
     plot_atlas as plot_atlas,
+    plot_fit as plot_fit,
     plot_helix as plot_helix,
     plot_hyperboloid as plot_hyperboloid,
     plot_rod_atlas as plot_rod_atlas,

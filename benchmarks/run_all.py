@@ -1,0 +1,194 @@
+"""Every benchmark in one run, and one summary table of speed *with* the error it was
+measured at.
+
+Each benchmark script runs in a fresh process (so that compile times and memory are its
+own), writes its JSON and PNG to `benchmarks/results/`, and this script reads the JSON back
+and condenses it into rows: the case, helixrod's method, error, run time and compile time,
+the peer's (numpy / scipy, run side by side in the same process by the benchmark) and the
+ratio of run times.  The rows go to `benchmarks/results/summary.md` (the README's
+Performance table) and `summary.json`.
+
+    python benchmarks/run_all.py --quick      # a few minutes on 2 cores
+    python benchmarks/run_all.py              # the full sizes
+    python benchmarks/run_all.py --only equilibria sweep
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results"
+BENCHMARKS = ("equilibria", "sweep", "kirchhoff", "fit", "finite")
+
+
+def run(name: str, quick: bool) -> float:
+    script = HERE / f"bench_{name}.py"
+    start = time.perf_counter()
+    cmd = [sys.executable, str(script)] + (["--quick"] if quick else [])
+    print(f"\n=== {' '.join(cmd[1:])}", flush=True)
+    subprocess.run(cmd, check=True)
+    return time.perf_counter() - start
+
+
+def _load(name):
+    path = RESULTS / f"bench_{name}.json"
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def _row(benchmark, case, method, error, seconds, compile_s, peer, peer_error, peer_seconds, note=""):
+    return dict(benchmark=benchmark, case=case, method=method, error=error, seconds=seconds, compile_s=compile_s,
+                peer=peer, peer_error=peer_error, peer_seconds=peer_seconds,
+                ratio=None if not (seconds and peer_seconds) else peer_seconds / seconds, note=note)
+
+
+def rows_equilibria(r):
+    acc = r["accuracy"]
+    out = []
+    for n in sorted({x["points"] for x in r["runs"] if x["method"] == "helixrod"}):
+        ours = next(x for x in r["runs"] if x["method"] == "helixrod" and x["points"] == n)
+        peer = next(x for x in r["runs"] if x["method"] == "numpy" and x["points"] == n)
+        out.append(_row("equilibria", f"{n:.0e} helices, every register + wrench + stability", "helix_equilibria (jit)",
+                        acc["helixrod"][0], ours["wall_s"], r["compile_s"][str(n)], "numpy eigvals + Newton",
+                        acc["numpy"][0], peer["wall_s"],
+                        note=f"CPU-time ratio {peer['cpu_s'] / ours['cpu_s']:.1f}x"))
+    sp = next(x for x in r["runs"] if x["method"] == "scipy")
+    n = max(x["points"] for x in r["runs"] if x["method"] == "helixrod")
+    ours = next(x for x in r["runs"] if x["method"] == "helixrod" and x["points"] == n)
+    out.append(_row("equilibria", "per helix, against scipy point by point", "helix_equilibria (jit)", acc["helixrod"][0],
+                    ours["wall_s"] / n, None, "scipy brentq per point", acc["scipy"][0], sp["wall_s"] / sp["points"]))
+    return out
+
+
+def rows_sweep(r):
+    acc = r["peer_accuracy"]
+    peer = {p["points"]: p for p in r["peer"]}
+    out = []
+    for run_ in r["runs"]:
+        if run_["points"] in peer and run_["fields"] in ("wrench", "count"):
+            p = peer[run_["points"]]
+            out.append(_row("sweep", f"{run_['points']:.1e}-point grid, fields: {run_['fields']}", "sweep (chunked, sharded)",
+                            acc["max_dphi"], run_["seconds"], r["compile_s"].get(run_["fields"]), "numpy peer (all fields)",
+                            acc["max_dphi"], p["seconds"], note="error: max |dphi| between the two"))
+    if "memory" in r:
+        m = r["memory"]
+        out.append(_row("sweep", f"{m['points']:.0e}-point count-only sweep, fresh process", "sweep", None, m["seconds"],
+                        None, "-", None, None, note=f"peak RSS {m['peak_mb']:.0f} MB (after imports {m['baseline_mb']:.0f} MB)"))
+    return out
+
+
+def rows_kirchhoff(r):
+    out = []
+    for case, h in r["headline"].items():
+        if not h:
+            continue
+        d, ref = h["default"], h["dop853"]
+        if d:
+            out.append(_row("kirchhoff", case, f"solve_static default ({d['method']}, tol {d['tol']:.0e})", d["error"],
+                            d["wall_s"], d.get("compile_s"), "scipy DOP853, tol 1e-10", ref["error"], ref["wall_s"]))
+        f = h.get("fastest_diffrax")
+        if f and (not d or f["run"]["method"] != d["method"] or f["run"]["tol"] != d["tol"]):
+            run_ = f["run"]
+            out.append(_row("kirchhoff", case, f"{run_['method']}, tol {run_['tol']:.0e}", run_["error"], run_["wall_s"],
+                            run_.get("compile_s"), "scipy DOP853, tol 1e-10", ref["error"], ref["wall_s"]))
+    b = r.get("batched")
+    if b:
+        out.append(_row("kirchhoff", f"vmap over {b['count']} initial conditions (per solve)", "solve_static, vmap", None,
+                        b["vmap_per_solve_s"], None, "loop of jitted solves", None, b["loop_per_solve_s"],
+                        note=f"lock-step overhead {b['lockstep_overhead']:.2f}x steps"))
+    return out
+
+
+def rows_fit(r):
+    out = []
+    rows = r["rows"]
+    for n in sorted({x["n"] for x in rows}):
+        ours = [x for x in rows if x["n"] == n and x["solver"] == "helixrod LM, 32 starts"]
+        peer = [x for x in rows if x["n"] == n and x["solver"] == "scipy trf, 32 starts"]
+        for o in ours:
+            p = next((x for x in peer if x["noise"] == o["noise"]), None)
+            out.append(_row("fit", f"{n} helices, noise {o['noise']}, 32 starts (cost {o['cost']:.6g})", "fit_stiffness LM",
+                            o["err"], o["later_s"], o["first_s"] - o["later_s"], "scipy least_squares trf",
+                            None if p is None else p["err"], None if p is None else p["later_s"],
+                            note="" if p is None else f"peer cost {p['cost']:.6g}"))
+    return out
+
+
+def rows_finite(r):
+    return [_row("finite", x["case"], x["method"], x.get("error"), x["seconds"], x.get("compile_s"), x["peer"],
+                 x.get("peer_error"), x.get("peer_seconds"), note=x.get("note", "")) for x in r.get("summary", [])]
+
+
+EXTRACT = {"equilibria": rows_equilibria, "sweep": rows_sweep, "kirchhoff": rows_kirchhoff, "fit": rows_fit, "finite": rows_finite}
+
+
+def _fmt(x, kind):
+    if x is None:
+        return "-"
+    if kind == "error":
+        return f"{x:.1e}"
+    if kind == "time":
+        return f"{x * 1e6:.3g} µs" if x < 1e-3 else f"{x * 1e3:.3g} ms" if x < 1 else f"{x:.3g} s"
+    if kind == "ratio":
+        return f"**{x:.3g}x**"
+    return str(x)
+
+
+def markdown(rows, machine):
+    lines = [
+        f"Measured by `benchmarks/run_all.py` on {machine}. Times are wall clock of later calls (compiled); "
+        "compile time apart; the peer ran side by side in the same process. Errors: against the exact or "
+        "high-precision reference of each benchmark (see its script).",
+        "",
+        "| benchmark | case | helixrod | error | time | compile | peer | peer error | peer time | speed-up | note |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for x in rows:
+        lines.append(
+            f"| {x['benchmark']} | {x['case']} | {x['method']} | {_fmt(x['error'], 'error')} | {_fmt(x['seconds'], 'time')} | "
+            f"{_fmt(x['compile_s'], 'time')} | {x['peer']} | {_fmt(x['peer_error'], 'error')} | "
+            f"{_fmt(x['peer_seconds'], 'time')} | {_fmt(x['ratio'], 'ratio')} | {x['note']} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="small sizes: a few minutes on 2 cores")
+    parser.add_argument("--only", nargs="*", choices=BENCHMARKS, help="run only these (the summary uses every JSON present)")
+    parser.add_argument("--summary-only", action="store_true", help="do not run anything: summarise the JSON files present")
+    opts = parser.parse_args()
+    elapsed = {}
+    if not opts.summary_only:
+        for name in opts.only or BENCHMARKS:
+            if (HERE / f"bench_{name}.py").exists():
+                elapsed[name] = run(name, opts.quick)
+    rows = []
+    for name in BENCHMARKS:
+        report = _load(name)
+        if report is not None:
+            rows += EXTRACT[name](report)
+    cpu = platform.processor() or platform.machine()
+    try:
+        cpu = next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    machine = f"{os.cpu_count()} CPU cores ({cpu}), float64, {platform.system()}"
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "summary.json").write_text(json.dumps(dict(machine=machine, quick=opts.quick, elapsed_s=elapsed, rows=rows), indent=1))
+    table = markdown(rows, machine)
+    (RESULTS / "summary.md").write_text(table)
+    print("\n" + table)
+    if elapsed:
+        print("benchmark wall times: " + ", ".join(f"{k} {v:.0f} s" for k, v in elapsed.items()))
+
+
+if __name__ == "__main__":
+    main()

@@ -213,3 +213,39 @@ def test_cli_fit_example(tmp_path):
     assert png.stat().st_size > 10_000
     bad = CliRunner().invoke(app, ["fit", str(example_data_path()), "--uhat", "1,0"])
     assert bad.exit_code != 0
+
+
+def _error_analysis(J):
+    spec = _fit._Problem(
+        _fit._Spec(
+            free=_fit._STIFFNESS, fixed_names=(), branch="nearest", use_register=True, fit_register=False, errors_in_variables=False
+        ),
+        fixed=(),
+        k_scale=1.0,
+        u_scale=1.0,
+    )
+    q = np.array([1.0, 1.5, 0.8, 0.3, 0.2])
+    return _fit._summarise(J, np.zeros(J.shape[0]), q, _fit._STIFFNESS, spec, absolute_sigma=True, weak_threshold=0.1)
+
+
+def test_error_analysis_with_fewer_residuals_than_parameters(rng):
+    """One data point gives 2 residuals for 5 stiffnesses: the report runs (it raised an
+    IndexError before) and says rank 2, three exact null directions, every stderr infinite."""
+    _, stderr, _, _, _, _, ident = _error_analysis(rng.normal(size=(2, 5)))
+    assert ident.rank == 2 and ident.weak_stderr.count(np.inf) == 3
+    assert all(np.isinf(float(v)) for v in stderr.values())
+
+
+def test_error_analysis_with_an_unboundedly_sensitive_residual(rng):
+    """A residual at a register tangency/cusp has a huge derivative (4.6e16 measured in
+    tests/test_stress.py).  Kept in the SVD it made every other direction look null (rank 1,
+    all stderr inf); as an exact constraint the error bars are the limit of the weighted
+    ones: compared with the same row weighted 1e5 (below the constraint threshold)."""
+    J = rng.normal(size=(24, 5))
+    row = rng.normal(size=5)
+    _, limit, _, _, _, _, ident = _error_analysis(np.vstack([J, 1e16 * row]))
+    _, weighted, _, _, _, _, plain = _error_analysis(np.vstack([J, 1e5 * row]))
+    assert ident.rank == 5 and np.isinf(float(ident.singular_values[0])) and "exact constraints" in ident.notes[0]
+    assert plain.rank == 5 and not any("exact constraints" in n for n in plain.notes)
+    for name in _fit._STIFFNESS:
+        np.testing.assert_allclose(float(limit[name]), float(weighted[name]), rtol=1e-6)

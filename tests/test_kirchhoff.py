@@ -75,6 +75,20 @@ def test_helix_stays_a_helix_over_100_turns():
     assert float(jnp.abs(sol.drift).max()) < 1e-12
 
 
+def test_highly_twisted_helix_within_max_steps():
+    """kappa = 1, tau = 100, slot 1 (spatially stable).  The wrench Jacobian J is far from
+    normal there (|J|_F / rho(J) ~ 1.6e3): the former step cap 2/|J|_F alone needed ~5.7e5
+    steps for 10 turns and hit max_steps; with the spectral cap 0.5/rho it takes ~1.7e3."""
+    eq = hr.helix_equilibria(ROD, 1.0, 100.0)
+    n0, m0, frame0, x0 = (a[1] for a in hr.helix_initial_conditions(eq))
+    length = 10 * 2 * np.pi / np.hypot(1.0, 100.0)
+    s = jnp.linspace(0.0, length, 5)
+    sol = solve_full(n0, m0, frame0, x0, length, s, 1e-8)
+    assert bool(sol.ok) and int(sol.num_steps) < 5000
+    np.testing.assert_allclose(sol.frame, hr.helix_frame(1.0, 100.0, eq.phi[1], s), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(sol.x, hr.helix_centreline(1.0, 100.0, s), rtol=0, atol=1e-12)
+
+
 def test_helix_exact_with_fixed_steps():
     # Exact for constant u at any step within the stability bound: 60 steps for 10 turns
     # (h |u| ~ 1).  Round-off on the neutral modes grows polynomially, hence 1e-12.

@@ -98,12 +98,38 @@ def _ambient_field(s, y: RodState, rod) -> RodState:
     return tangent(y, *_body_velocity(s, y, rod))
 
 
+def _spectral_radius_bound(J, squarings: int = 5):
+    """Upper bound $\\|J^{2^k}\\|_F^{1/2^k} \\ge \\rho(J)$ (Gelfand), within a few per cent of
+    the spectral radius for $k = 5$ even when $J$ is far from normal; matrix products only
+    (no eigenvalues: GPU-ready), rescaled at each squaring so that nothing over- or
+    underflows."""
+    scale = jnp.max(jnp.abs(J))
+    nilpotent = ~(scale > 0)
+    safe = jnp.where(nilpotent, 1.0, scale)
+    A = J / safe
+    log_scale = jnp.log(safe)
+    for _ in range(squarings):
+        A = A @ A
+        a = jnp.max(jnp.abs(A))
+        nilpotent = nilpotent | ~(a > 0)
+        a_safe = jnp.where(a > 0, a, 1.0)
+        A = A / a_safe
+        log_scale = 2 * log_scale + jnp.log(a_safe)
+    log_rho = (log_scale + 0.5 * jnp.log(jnp.sum(A * A))) / 2**squarings
+    return jnp.where(nilpotent, 0.0, jnp.exp(log_rho))
+
+
 def _stability_step(rod, n0, m0):
     """Largest step for which the explicit coupling of `CommutatorFreeRK4` keeps round-off
-    perturbations bounded: $2/\\|J\\|_F$ with $J$ the Jacobian of the wrench equations
-    at $s = 0$.  Near a uniform helix the error estimate vanishes, and without this cap the
-    step grows until round-off is amplified (measured: stable for $h\\|J\\|_F \\lesssim 3.5$
-    on spatially stable helices)."""
+    perturbations bounded, from the Jacobian $J$ of the wrench equations at $s = 0$:
+    $\\max(2/\\|J\\|_F,\\ 0.5/\\rho(J))$, $\\rho$ the spectral radius (bounded above by
+    `_spectral_radius_bound`).  Near a uniform helix the error estimate vanishes, and
+    without a cap the step grows until round-off is amplified (measured: stable for
+    $h\\|J\\|_F \\lesssim 3.5$ on spatially stable helices; on the 1000-turn helix of the
+    README the frame error is 9e-11 at $h\\rho = 0.8$, 1.3e-9 at 0.9, 1.8e-7 at 0.95).  The
+    spectral term matters where $J$ is far from normal (highly twisted, nearly singular
+    rods: $\\|J\\|_F/\\rho$ of 1.6e3 and 2.5e4 measured), where $2/\\|J\\|_F$ alone made
+    `solve_static` run out of steps (`tests/test_stress.py`)."""
 
     def wrench_rate(w):
         state = RodState(w[:3], w[3:])
@@ -112,7 +138,10 @@ def _stability_step(rod, n0, m0):
 
     J = jax.jacfwd(wrench_rate)(jax.lax.stop_gradient(jnp.concatenate([n0, m0])))
     norm = jnp.sqrt(jnp.sum(J * J))
-    return jnp.where(norm > 0, 2.0 / jnp.where(norm > 0, norm, 1.0), jnp.inf)
+    rho = _spectral_radius_bound(J)
+    frobenius_step = jnp.where(norm > 0, 2.0 / jnp.where(norm > 0, norm, 1.0), jnp.inf)
+    spectral_step = jnp.where(rho > 0, 0.5 / jnp.where(rho > 0, rho, 1.0), jnp.inf)
+    return jnp.maximum(frobenius_step, spectral_step)
 
 
 def _is_concrete(*xs) -> bool:

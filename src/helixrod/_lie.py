@@ -35,7 +35,9 @@ class RodState(eqx.Module):
 
 
 def hat(w: Array) -> Array:
-    """Skew matrix $\\hat w$ with $\\hat w v = w \\times v$; `w` has a trailing 3."""
+    """Skew matrix $\\hat w$ with $\\hat w v = w \\times v$: `w` of shape `(..., 3)` gives
+    `(..., 3, 3)`.  Example: `hat(jnp.array([0., 0., 1.])) @ jnp.array([1., 0., 0.])` is
+    `(0, 1, 0)` ($e_3 \\times e_1 = e_2$).  Inverse of the private `vee`."""
     w1, w2, w3 = w[..., 0], w[..., 1], w[..., 2]
     z = jnp.zeros_like(w1)
     return jnp.stack(
@@ -68,7 +70,9 @@ def _exp_coefficients(theta2):
 
 
 def so3_exp(w: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
-    """Rotation $\\exp(\\hat w)$ by the Rodrigues formula (orthonormal to round-off)."""
+    """Rotation matrix $\\exp(\\hat w)$ (by angle $|w|$, radians, about $w/|w|$) by the Rodrigues
+    formula, orthonormal to round-off; `w` of shape `(..., 3)` gives `(..., 3, 3)`.  A series
+    below $|w| = 10^{-2}$ keeps values and gradients finite at $w = 0$."""
     a, b, _ = _exp_coefficients(jnp.sum(w * w, axis=-1))
     W = hat(w)
     eye = jnp.eye(3, dtype=W.dtype)
@@ -76,8 +80,12 @@ def so3_exp(w: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
 
 
 def se3_exp(w: Float[Array, "3"], v: Float[Array, "3"]) -> tuple[Array, Array]:
-    """Group exponential of the body twist $(w, v)$: rotation $R$ and translation $Vv$,
-    $V = I + \\frac{1-\\cos\\theta}{\\theta^2}\\hat w + \\frac{\\theta-\\sin\\theta}{\\theta^3}\\hat w^2$."""
+    """Group exponential on $SE(3)$ of the body twist $(w, v)$ (rotation and translation
+    rates times a step, shape `(3,)` each, director-frame components): rotation $R$
+    `(3, 3)` = `so3_exp(w)` and translation $Vv$ `(3,)`, with $\\theta = |w|$ and
+    $V = I + \\frac{1-\\cos\\theta}{\\theta^2}\\hat w + \\frac{\\theta-\\sin\\theta}{\\theta^3}\\hat w^2$.
+    For a rod, $(w, v) = h\\,(u, e_3)$ moves the frame and centreline by arc length $h$
+    exactly when $u$ is constant."""
     a, b, c = _exp_coefficients(jnp.sum(w * w, axis=-1))
     wv = jnp.cross(w, v)
     wwv = jnp.cross(w, wv)

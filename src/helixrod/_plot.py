@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 
+#: The eight colours of Okabe & Ito (2008), distinguishable with every common colour-vision
+#: deficiency, as hex strings; categorical colours of every helixrod figure.
 OKABE_ITO = ["#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#F0E442", "#000000"]
 
 
 def plot_hyperboloid(rod, path=None, *, u3_slice=1.5, radii=None, extent=3.0):
-    """Helix hyperboloid $h(u) = m_1 u_2 - m_2 u_1 = 0$ in 3D, its slice at $u_3$ =
-    `u3_slice` with constraint circles of the given `radii` (curvatures), and the
-    registers (intersections) on each circle.  `path=None` returns the `Figure`; otherwise
-    writes it and returns `path`."""
+    """Helix hyperboloid $h(u) = m_1 u_2 - m_2 u_1 = 0$ of `rod` in 3D, its slice at $u_3$ =
+    `u3_slice` with the constraint circles of the given `radii` (curvatures $\\kappa$, default
+    (0.6, 1.6)), and the registers (intersections) on each circle, filled when stable.  Axes
+    span $[-$`extent`, `extent`$]$ in every twist component (units 1/length).  `path=None`
+    returns the `Figure`; otherwise writes it (format by suffix) and returns `path`."""
     import jax.numpy as jnp
     from matplotlib.figure import Figure
 
@@ -41,15 +44,16 @@ def plot_hyperboloid(rod, path=None, *, u3_slice=1.5, radii=None, extent=3.0):
     ax = fig.add_subplot(1, 2, 2)
     H = h(U1, U2, u3_slice)
     ax.contour(U1, U2, H, levels=[0.0], colors=[OKABE_ITO[0]], linewidths=2)
-    radii = (0.6, 1.6) if radii is None else radii
+    radii = (0.6, 1.6) if radii is None else tuple(radii)
     theta = np.linspace(0, 2 * np.pi, 400)
+    # Every circle's registers in one call (one compilation for any number of radii of a size).
+    eq = helix_equilibria(rod, jnp.asarray(radii, float), jnp.asarray(u3_slice, float))
     for i, r in enumerate(radii):
-        colour = OKABE_ITO[1 + i]
+        colour = OKABE_ITO[1 + i % (len(OKABE_ITO) - 1)]
         ax.plot(r * np.sin(theta), r * np.cos(theta), color=colour, lw=1.5, label=f"$\\kappa = {r:g}$")
-        eq = helix_equilibria(rod, jnp.asarray(r), jnp.asarray(u3_slice))
-        valid = np.asarray(eq.valid)
-        u = np.asarray(eq.u)[valid]
-        stable = np.asarray(eq.stable)[valid]
+        valid = np.asarray(eq.valid[i])
+        u = np.asarray(eq.u[i])[valid]
+        stable = np.asarray(eq.stable[i])[valid]
         ax.scatter(u[stable, 0], u[stable, 1], s=60, color=colour, edgecolor="k", zorder=5)
         ax.scatter(u[~stable, 0], u[~stable, 1], s=60, facecolor="white", edgecolor=colour, zorder=5, lw=2)
         ax3.plot(r * np.sin(theta), r * np.cos(theta), u3_slice + 0 * theta, color=colour, lw=2)

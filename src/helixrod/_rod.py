@@ -271,8 +271,11 @@ def _shear_modulus(E, G, nu):
 def section_scales(E: float, I1: float, area: float, density: float = 1.0) -> dict[str, float]:
     """Natural scales of a rod (reference report, section 1.6, eqs. 25-27).
 
-    length $L = \\sqrt{I_1/A}$, time $T = \\sqrt{\\rho I_1 / (A E)}$, force $\\phi = A E$;
-    moments scale as $\\phi L$ and twists as $1/L$.
+    From Young's modulus `E` (force/area), the second moment `I1` (length^4), the section
+    `area` (length^2) and the `density` (mass/volume): length $L = \\sqrt{I_1/A}$, time
+    $T = \\sqrt{\\rho I_1 / (A E)}$, force $\\phi = A E$; moments scale as $\\phi L$, twists as
+    $1/L$, stiffnesses as $\\phi L^2$.  Returns a dict of Python floats with keys `length`,
+    `time`, `force`, `moment`.
     """
     length = math.sqrt(I1 / area)
     return {

@@ -343,7 +343,9 @@ def save_sweep(path, result: SweepResult) -> None:
 
 
 def load_sweep(path) -> SweepResult:
-    """Read a file written by `save_sweep`."""
+    """Read a file written by `save_sweep` and return the `SweepResult` (fields, grid axes and
+    rod as saved).  Raises `ValueError` for a file that is not a helixrod sweep; never
+    unpickles."""
     with np.load(path, allow_pickle=False) as data:
         meta = json.loads(str(data["meta"]))
         if meta.get("format") != "helixrod.sweep":
@@ -428,6 +430,8 @@ class Sensitivity(collections.abc.Mapping):
         self._arrays = dict(arrays)
 
     def of(self, parameter: str, name: str = "force_elasticity") -> np.ndarray:
+        """The slice of output `name` (a derivative or elasticity field) for one parameter
+        of `wrt`: shape `(len(kappa), len(tau), 4)`, one value per register slot."""
         return self._arrays[name][..., self.wrt.index(parameter)]
 
     def __getitem__(self, name):

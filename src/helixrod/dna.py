@@ -6,7 +6,9 @@ as a uniform elastic helix (a `helixrod.Rod` whose intrinsic twist is the B-DNA 
 this module converts between those observables and the helix $(\\kappa, \\tau)$, and gives
 the linear moduli the field quotes -- stretch modulus $S$, twist modulus $C$, twist-stretch
 coupling $g$ -- for any rod (`effective_moduli`).  Units: pN, nm, pN nm, radians; see the
-module `helixrod._dna` docstring for the conventions.
+module `helixrod._dna` docstring for the conventions.  Every function broadcasts its array
+arguments elementwise; where inputs are checked (temperatures, helix geometry, tweezer
+observables) bad concrete values raise `ValueError` and traced ones give NaN.
 
 **Example**
 

@@ -377,35 +377,29 @@ def test_isotropic_radial_path():
     record("registers: K1 = K2, tau -> uhat3 vs mpmath, wrench", max(mp_worst[1:]), 1e-12)
 
 
-_CONTINUUM_WRENCH = (
-    "HelixEquilibria documents a continuum as 'every register is an equilibrium with the same "
-    "axial force, moment and energy', but for K1 = K2 with couplings at tau = uhat3 (B = C = 0) "
-    "only the energy is constant: m3 = kappa (K13 sin phi + K23 cos phi) varies with phi, so "
-    "F = mu2 |u| does too. Repro: Rod(1.2, 1.2, 0.9, 0.3, -0.2, uhat=(0, 0, 0.3)) at kappa = "
-    "0.8, tau = 0.3: continuum=True, reported F = -0.444 (phi = 0) while the family spans "
-    "F in [-0.554, -0.061] and M in [0.798, 1.000]; the limits of the two registers along "
-    "tau = 0.3 + d, d -> 0, are the extremes F = -0.554 and -0.061"
-)
-
-
-@pytest.mark.xfail(strict=True, reason=_CONTINUUM_WRENCH)
-def test_continuum_has_one_wrench():
-    """A `continuum` point promises one axial force and moment for the whole family.  Checked
-    at 16 registers of the family (each an equilibrium: `helix_residual` = 0) for the fully
-    isotropic rod (holds) and K1 = K2 with couplings at tau = uhat3 (does not)."""
-    for params in [(1.2, 1.2, 0.9, 0.0, 0.0, 0.0, 0.0, 0.3), (1.2, 1.2, 0.9, 0.3, -0.2, 0.0, 0.0, 0.3)]:
+def test_continuum_wrench():
+    """A `continuum` point: every register of the family is an equilibrium with the same
+    energy.  Fully isotropic rod: one axial force and moment for the whole family.  K1 = K2
+    with couplings at tau = uhat3 (B = C = 0): m3 = kappa (K13 sin phi + K23 cos phi) varies
+    with phi, so the wrench does too (F in [-0.554, -0.061] for the rod below), and slot 0
+    reports the member phi = 0, as documented (found by this suite: the docstring used to
+    promise one wrench)."""
+    for params, one_wrench in [((1.2, 1.2, 0.9, 0.0, 0.0, 0.0, 0.0, 0.3), True), ((1.2, 1.2, 0.9, 0.3, -0.2, 0.0, 0.0, 0.3), False)]:
         rod = hr.Rod(*params[:5], uhat=params[5:])
         kappa, tau = 0.8, 0.3
         eq = equilibria([params], [kappa], [tau])
-        assert eq.continuum[0]
+        assert eq.continuum[0] and eq.phi[0, 0] == 0.0
         phi = np.linspace(0, 2 * np.pi, 16, endpoint=False)
         u = np.stack([kappa * np.sin(phi), kappa * np.cos(phi), np.full_like(phi, tau)], -1)
         m = np.asarray(rod.moment(u))
         mu1 = (m[:, 0] * u[:, 0] + m[:, 1] * u[:, 1]) / kappa**2
         mu2 = m[:, 2] - mu1 * tau
         assert np.max(np.abs(hr.helix_residual(rod, u, mu2[:, None] * u))) < 1e-15
+        energy = np.asarray(rod.energy(u))
+        np.testing.assert_allclose(energy, eq.energy[0, 0], rtol=0, atol=1e-15)
         F = mu2 * np.hypot(kappa, tau)
-        np.testing.assert_allclose(F, eq.force[0, 0], rtol=0, atol=1e-14)
+        np.testing.assert_allclose(F[0], eq.force[0, 0], rtol=0, atol=1e-14)
+        assert (np.ptp(F) < 1e-14) == one_wrench
 
 
 def test_kappa_to_zero():
@@ -428,17 +422,6 @@ def test_kappa_to_zero():
     assert eq.straight.tolist() == [True, False] and eq.count.tolist() == [0, 2]
 
 
-_MOMENT_CANCELLATION = (
-    "helix_equilibria computes M = mu1 |u| + mu2 tau/|u|; as kappa -> 0 with a curved or coupled "
-    "rod mu1 ~ 1/kappa and the two terms cancel, so M loses ~eps/kappa absolutely (M = m.u/|u| "
-    "would not). Repro: Rod(1, 1.5, 0.8, 0.3, -0.2, uhat=(0.4, -0.3, 0.2)), tau = 0.7: relative "
-    "M error vs mpmath 2.0e-13 at kappa = 1e-4, 2.3e-11 at 1e-6, 4.2e-9 at 1e-8, 3.0e-7 at 1e-10, "
-    "7.7e82 at 1e-100 (F and phi stay within 3e-16); its derivative too: at kappa = 1e-10 mpmath "
-    "gives dM/dkappa = -+0.2773 for the two registers, jacfwd 0 and jacrev -+0.892"
-)
-
-
-@pytest.mark.xfail(strict=True, reason=_MOMENT_CANCELLATION)
 def test_moment_cancellation_small_kappa():
     """The axial moment M of curved and coupled rods as kappa -> 0 (1e-4 ... 1e-10): expected,
     like F, within 1e-12 of mpmath relative to max(|M|, natural scale), and dM/dkappa at
@@ -461,15 +444,6 @@ def test_moment_cancellation_small_kappa():
     assert worst[2] <= 1e-12, worst
 
 
-_KAPPA_UNDERFLOW = (
-    "helix_equilibria: for 0 < kappa < ~1e-154 kappa**2 underflows in mu1 = (m1 u1 + m2 u2)/kappa^2, "
-    "so valid registers carry F = +-inf and M = NaN (silent garbage: neither flagged nor finite). "
-    "Repro: helix_equilibria(Rod(1, 1.5, 0.8, 0.3, -0.2, uhat=(0.4, -0.3, 0.2)), 1e-160, 0.7): "
-    "valid [T, T, F, F], force [inf, -inf], moment [nan, nan]; mpmath: F = +-2.1076e159, finite M"
-)
-
-
-@pytest.mark.xfail(strict=True, reason=_KAPPA_UNDERFLOW)
 def test_kappa_below_sqrt_tiny():
     """kappa = 1e-160 and 1e-300: the wrench (~1/kappa) is representable.  Expected: finite
     values matching mpmath, or the point flagged (no valid register)."""
@@ -991,15 +965,6 @@ _NONFINITE_COEFFICIENTS = np.array(
         [0.3, 0.3, 0.3, 0.3, np.inf, 0.3] + [0.3] * (N - 6),
     ]
 )
-_ROOTS_NONFINITE = (
-    "register_roots does not flag non-finite coefficients: NaN in A or B gives valid = [T, T, F, F] "
-    "with phi = NaN, and A = inf gives valid = [T, T, F, F] with phi = (0, pi), arbitrary roots "
-    "marked valid. Repro: register_roots([nan, inf], [0.2, 0.2], [0.3, 0.3]). helix_equilibria "
-    "masks non-finite kappa, tau itself, so only direct callers are exposed"
-)
-
-
-@pytest.mark.xfail(strict=True, reason=_ROOTS_NONFINITE)
 def test_register_roots_flags_nonfinite_coefficients():
     """Non-finite A, B or C: expected no valid slot (as `helix_equilibria` does for
     non-finite kappa, tau), never NaN or arbitrary angles marked valid."""

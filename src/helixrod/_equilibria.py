@@ -40,8 +40,12 @@ class HelixEquilibria(eqx.Module):
 
     Per-point fields (shape `batch`): `continuum` -- $W$ is constant on the circle (the
     fully isotropic rod, or $K_1 = K_2$ at a $\\tau$ where $B = C = 0$): every register is an
-    equilibrium with the same axial force, moment and energy; slot 0 holds $\\varphi = 0$ as
-    the representative, and no register is called stable (the family is neutral).
+    equilibrium, with the same energy; slot 0 holds $\\varphi = 0$ as the representative, and
+    no register is called stable (the family is neutral).  The axial force and moment are
+    the same for every register of the family only when the rod has no bend-twist
+    coupling ($K_{13} = K_{23} = 0$, the fully isotropic rod); with coupling, $m_3$ and so
+    the wrench vary with $\\varphi$ along the family, and slot 0 reports the member
+    $\\varphi = 0$.
     `straight` -- $\\kappa = 0$: no register is defined, every slot is invalid; see
     `straight_family` and the $1/\\kappa$ divergence of the wrench of a curved rod.
     """
@@ -165,12 +169,16 @@ def _equilibria_flat(rod: Rod, kappa, tau, coefficients, registers) -> HelixEqui
     # The rod with an axis for the register slots, so that its laws broadcast over them.
     slot_rod = jax.tree.map(lambda x: jnp.expand_dims(x, rod.K1.ndim), rod)
     m = slot_rod.moment(u)
-    mu1 = (m[..., 0] * u[..., 0] + m[..., 1] * u[..., 1]) / (k * k)
+    # mu1 = (m1 u1 + m2 u2) / kappa^2, written without kappa^2 (which underflows for
+    # kappa below ~1e-154 while the wrench, ~1/kappa, is still representable).
+    mu1 = (m[..., 0] * sin_phi + m[..., 1] * cos_phi) / k
     mu2 = m[..., 2] - mu1 * t
     n = mu2[..., None] * u
-    norm_u = jnp.sqrt(k * k + t * t)
+    norm_u = jnp.hypot(k, t)
     force = mu2 * norm_u
-    moment = mu1 * norm_u + mu2 * t / norm_u
+    # M = m.a directly: mu1 |u| + mu2 tau/|u| is the same in exact arithmetic, but its two
+    # terms (~1/kappa each for a curved or coupled rod) cancel as kappa -> 0.
+    moment = jnp.sum(m * u, axis=-1) / norm_u
     energy = slot_rod.energy(u)
     cos2 = cos_phi * cos_phi - sin_phi * sin_phi
     d2energy = k * (2 * A[..., None] * cos2 + B[..., None] * cos_phi - C[..., None] * sin_phi)

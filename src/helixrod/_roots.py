@@ -191,6 +191,8 @@ def _solve(A, B, C, careful=False):
     dtype = jnp.result_type(A, B, C, float)
     A, B, C = (jnp.asarray(x, dtype) for x in (A, B, C))
     A, B, C = jnp.broadcast_arrays(A, B, C)
+    finite = jnp.isfinite(A) & jnp.isfinite(B) & jnp.isfinite(C)
+    A, B, C = (jnp.where(finite, x, 0.5) for x in (A, B, C))
     scale = jnp.maximum(jnp.maximum(jnp.abs(A), jnp.abs(B)), jnp.abs(C))
     continuum = scale == 0
     inv_scale = 1 / jnp.where(continuum, 1.0, scale)
@@ -285,7 +287,10 @@ def _solve(A, B, C, careful=False):
     tangent = tangent & ~cont
     cos_phi = jnp.where(cont, 1.0, cos_phi)
     sin_phi = jnp.where(cont, 0.0, sin_phi)
-    return _angle(cos_phi, sin_phi), cos_phi, sin_phi, valid, continuum, tangent, converged
+    # Non-finite coefficients: no register (the finite stand-in solved above is masked, and
+    # stays finite so that gradients through masked slots stay finite too).
+    valid = valid & finite[..., None]
+    return _angle(cos_phi, sin_phi), cos_phi, sin_phi, valid, continuum & finite, tangent & valid, converged | ~finite
 
 
 def _solve_all(A, B, C):

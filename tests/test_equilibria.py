@@ -85,8 +85,10 @@ def test_flags_bad_points_without_spoiling_batch():
     eq = equilibria(rod, kappa, 1.0)
     assert eq.count.tolist() == [int(eq.count[0]), 0, 0, 0, int(eq.count[4])]
     assert bool(eq.straight[3]) and not bool(eq.straight[1])
-    good = hr.helix_equilibria(rod, jnp.array([0.5, 0.7]), 1.0)
-    np.testing.assert_array_equal(np.asarray(eq.force)[[0, 4]], np.asarray(good.force))
+    # The same compiled program on the batch with the bad points replaced: the good points
+    # are bit for bit the same (another program, e.g. eager mode, may round differently).
+    good = equilibria(rod, jnp.array([0.5, 1.0, 1.0, 1.0, 0.7]), 1.0)
+    np.testing.assert_array_equal(np.asarray(eq.force)[[0, 4]], np.asarray(good.force)[[0, 4]])
 
 
 def test_wrench_diverges_as_kappa_to_zero():

@@ -17,7 +17,6 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ._chunks import map_chunks
 from ._roots import register_roots
 from ._rod import Rod
 
@@ -143,12 +142,9 @@ def helix_equilibria(rod: Rod, kappa: ArrayLike, tau: ArrayLike) -> HelixEquilib
     B = jnp.where(helical, B, 0.0)
     C = jnp.where(helical, C, 0.0)
     # The registers of the whole batch at once (the solver chunks and gathers its rare hard
-    # points itself), then the rest, a cache-sized chunk at a time.
+    # points itself), then the rest: one elementwise pass (chunking it measured no faster).
     registers = register_roots(A, B, C)
-    if batch:
-        eq = map_chunks(_equilibria_flat, (rod, kappa, tau, (A, B, C), registers), size)
-    else:
-        eq = map_chunks(lambda *args: _equilibria_flat(rod, *args), (kappa, tau, (A, B, C), registers), size)
+    eq = _equilibria_flat(rod, kappa, tau, (A, B, C), registers)
     return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), eq)
 
 
@@ -163,23 +159,32 @@ def _equilibria_flat(rod: Rod, kappa, tau, coefficients, registers) -> HelixEqui
     valid = valid & helical[..., None]
     continuum = continuum & helical
 
-    k = jnp.where(helical, kappa, 1.0)[..., None]
-    t = jnp.broadcast_to(tau[..., None], cos_phi.shape)
-    u = jnp.stack([k * sin_phi, k * cos_phi, t], axis=-1)
+    # Component by component (no 3-vectors until the outputs, which XLA drops if unused).
+    kappa_safe = jnp.where(helical, kappa, 1.0)
+    k = kappa_safe[..., None]
+    t = tau[..., None]
+    norm_u = jnp.hypot(kappa_safe, tau)[..., None]
     # The rod with an axis for the register slots, so that its laws broadcast over them.
     slot_rod = jax.tree.map(lambda x: jnp.expand_dims(x, rod.K1.ndim), rod)
-    m = slot_rod.moment(u)
+    u1, u2, u3 = k * sin_phi, k * cos_phi, jnp.broadcast_to(t, cos_phi.shape)
+    uh = slot_rod.uhat
+    v1, v2, v3 = u1 - uh[..., 0], u2 - uh[..., 1], u3 - uh[..., 2]
+    m1 = slot_rod.K1 * v1 + slot_rod.K13 * v3
+    m2 = slot_rod.K2 * v2 + slot_rod.K23 * v3
+    m3 = slot_rod.K13 * v1 + slot_rod.K23 * v2 + slot_rod.K3 * v3
     # mu1 = (m1 u1 + m2 u2) / kappa^2, written without kappa^2 (which underflows for
     # kappa below ~1e-154 while the wrench, ~1/kappa, is still representable).
-    mu1 = (m[..., 0] * sin_phi + m[..., 1] * cos_phi) / k
-    mu2 = m[..., 2] - mu1 * t
-    n = mu2[..., None] * u
-    norm_u = jnp.hypot(k, t)
+    mu1 = (m1 * sin_phi + m2 * cos_phi) / k
+    mu2 = m3 - mu1 * t
+    m_dot_u = m1 * u1 + m2 * u2 + m3 * u3
     force = mu2 * norm_u
     # M = m.a directly: mu1 |u| + mu2 tau/|u| is the same in exact arithmetic, but its two
     # terms (~1/kappa each for a curved or coupled rod) cancel as kappa -> 0.
-    moment = jnp.sum(m * u, axis=-1) / norm_u
-    energy = slot_rod.energy(u)
+    moment = m_dot_u / norm_u
+    u = jnp.stack([u1, u2, u3], axis=-1)
+    m = jnp.stack([m1, m2, m3], axis=-1)
+    n = mu2[..., None] * u
+    energy = 0.5 * (v1 * m1 + v2 * m2 + v3 * m3)
     cos2 = cos_phi * cos_phi - sin_phi * sin_phi
     d2energy = k * (2 * A[..., None] * cos2 + B[..., None] * cos_phi - C[..., None] * sin_phi)
     d2energy = jnp.where(tangent, 0.0, d2energy)
@@ -197,14 +202,14 @@ def _equilibria_flat(rod: Rod, kappa, tau, coefficients, registers) -> HelixEqui
         n=masked(n),
         force=masked(force),
         moment=masked(moment),
-        tension=masked(n[..., 2]),
+        tension=masked(mu2 * u3),
         energy=masked(energy),
         d2energy=masked(d2energy),
         stable=stable,
         mu1=masked(mu1),
         mu2=masked(mu2),
-        I1=masked(jnp.sum(n * n, axis=-1)),
-        I2=masked(jnp.sum(m * n, axis=-1)),
+        I1=masked(force * force),
+        I2=masked(mu2 * m_dot_u),
         tangent=tangent & valid,
         continuum=continuum,
         straight=straight,

@@ -76,6 +76,7 @@ from ._boundary import (
     Tweezer as Tweezer,
     axial_ends as axial_ends,
     solve_boundary_value as solve_boundary_value,
+    wrench_growth_rate as wrench_growth_rate,
 )
 from ._finite_data import (
     EndResponseData as EndResponseData,

@@ -1009,3 +1009,28 @@ def axial_end_data(rod, length, kind, values) -> _EndData:
         point=jnp.zeros(3, dtype),
         about_end=jnp.asarray(False),
     )
+
+
+def wrench_growth_rate(rod, n: ArrayLike, m: ArrayLike) -> Array:
+    """Spatial growth rate $\\lambda$ of perturbations of a uniform helix: the largest real
+    part of the eigenvalues of the $6\\times 6$ Jacobian of the static Kirchhoff equations
+    $(n', m') = (-u\\times n,\\ -u\\times m - e_3\\times n)$, $u = u(m)$, at the constant local
+    wrench `(n, m)` (e.g. `helix_equilibria(...).n`, `.m`, or `bulk_helix`).
+
+    $\\lambda > 0$ (a spatially unstable helix) means that errors in a shooting guess grow like
+    $e^{\\lambda L}$: from the bulk guess single shooting was measured to converge up to
+    $\\lambda L \\approx 3$ and to fail beyond $\\approx 4$ (README), so use
+    `segments >= lambda * L / 3`.  `n`, `m` `(..., 3)` broadcast; uses `jnp.linalg.eigvals`
+    (CPU).  Not differentiable.
+    """
+    n, m = jnp.broadcast_arrays(jnp.asarray(n, jnp.result_type(float)), jnp.asarray(m, jnp.result_type(float)))
+    e3 = jnp.array([0.0, 0.0, 1.0], n.dtype)
+
+    def rate(w):
+        u = rod.twist(w[3:])
+        return jnp.concatenate([-jnp.cross(u, w[:3]), -jnp.cross(u, w[3:]) - jnp.cross(e3, w[:3])])
+
+    wrench = jax.lax.stop_gradient(jnp.concatenate([n, m], -1)).reshape(-1, 6)
+    jac = jax.vmap(jax.jacfwd(rate))(wrench)
+    growth = jnp.max(jnp.real(jnp.linalg.eigvals(jac)), axis=-1)
+    return growth.reshape(n.shape[:-1])

@@ -178,6 +178,15 @@ def test_axial_ends_follow_the_spring_conventions():
         np.testing.assert_allclose(end.frame, hr.helix_frame(1.0, 0.3, 0.0, length), atol=1e-14)
         if "extension" in kw:
             np.testing.assert_allclose(end.position, hr.helix_centreline(1.0, 0.3, length), atol=1e-13)
+    # The placement is differentiable at the edges: straight (kappa = 0) and straight untwisted rods.
+    for uhat in ((0.0, 0.0, 0.0), (0.0, 0.0, 0.5)):
+        def placement(u):
+            rod = hr.Rod(1.0, 1.0, 0.8, uhat=u)
+            x, frame = _axial.unloaded_state(rod, 2.0)
+            return jnp.concatenate([x, frame.ravel(), jnp.stack(_axial.unloaded_observables(rod, 2.0))])
+
+        np.testing.assert_allclose(placement(jnp.asarray(uhat))[:3], (0.0, 0.0, 2.0), atol=1e-15)
+        assert bool(jnp.all(jnp.isfinite(jax.jacfwd(placement)(jnp.asarray(uhat)))))
     for end in (free, hr.axial_ends(SPRING, length, force=0.0, rotation=theta0)[1]):
         sol = solve(SPRING, length, start, end, (jnp.full(3, 0.01), jnp.full(3, -0.01)))
         assert bool(sol.ok)

@@ -58,13 +58,23 @@ def length_scale(rod, length) -> Array:
     return jnp.minimum(length, 1.0 / jnp.where(norm > 0, norm, 1.0 / length))
 
 
+def _safe_sqrt(x):
+    """sqrt with a zero (not NaN) derivative at 0 (double `where`)."""
+    positive = x > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
+
+
 def _intrinsic(rod):
+    """(kappa, tau, phi, |uhat|, |uhat| > 0) of the intrinsic helix, with finite derivatives
+    at kappa = 0 and uhat = 0 (tau is replaced by 1 when uhat = 0, where it is unused)."""
     uhat = jnp.asarray(rod.uhat)
-    kappa = jnp.hypot(uhat[0], uhat[1])
-    norm = jnp.linalg.norm(uhat)
+    k2 = uhat[0] ** 2 + uhat[1] ** 2
+    kappa = _safe_sqrt(k2)
+    norm = _safe_sqrt(k2 + uhat[2] ** 2)
     curved = norm > 0
     safe_tau = jnp.where(curved, uhat[2], 1.0)
-    phi = jnp.arctan2(uhat[0], uhat[1])
+    bent = k2 > 0
+    phi = jnp.where(bent, jnp.arctan2(jnp.where(bent, uhat[0], 0.0), jnp.where(bent, uhat[1], 1.0)), 0.0)
     return kappa, safe_tau, phi, norm, curved
 
 

@@ -277,6 +277,30 @@ def test_force_extension_command(tmp_path):
     assert bad.exit_code != 0 and "must not be zero" in bad.output
 
 
+def test_rotation_response_agrees_with_force_extension():
+    """Both curve functions solve the same problems (they share one compiled program with the
+    CLI test): the same (force, rotation) point agrees; the torque grows with the turn and
+    follows the bulk helix; a spring twisted between grips at fixed extension too."""
+    length = 2 * TURN
+    theta0 = length * SPRING_NORM
+    turns = theta0 + jnp.array([-0.5, 0.0, 0.5, 1.0])
+    twisted = hr.rotation_response(SPRING, length, turns, force=0.01, segments=4)
+    pulled = hr.force_extension(SPRING, length, jnp.array([0.0, 0.005, 0.01, 0.02]), rotation=theta0, segments=4)
+    assert bool(jnp.all(twisted.ok)) and bool(jnp.all(pulled.ok))
+    np.testing.assert_allclose(twisted.rotation, turns, atol=1e-9)
+    np.testing.assert_allclose(twisted.force, 0.01, atol=1e-12)
+    np.testing.assert_allclose(twisted.extension[1], pulled.extension[2], atol=1e-9)
+    np.testing.assert_allclose(twisted.moment[1], pulled.moment[2], atol=1e-10)
+    assert np.all(np.diff(np.asarray(twisted.moment)) > 0)
+    np.testing.assert_allclose(twisted.moment, twisted.bulk_moment, rtol=0, atol=1e-3 * float(jnp.abs(twisted.moment).max()))
+    h0 = length * 0.3 / SPRING_NORM
+    gripped = hr.rotation_response(SPRING, length, turns, extension=1.05 * h0, segments=4)
+    assert bool(jnp.all(gripped.ok))
+    np.testing.assert_allclose(gripped.extension, 1.05 * h0, atol=1e-9)
+    np.testing.assert_allclose(gripped.force, gripped.bulk_force, rtol=0.1)
+    assert np.all(np.diff(np.asarray(gripped.moment)) > 0)
+
+
 def test_response_curve_flags_a_bad_point_without_spoiling_the_others():
     length = jnp.asarray(2 * TURN)
     clean = tweezer_curve(length, FORCES)

@@ -430,10 +430,7 @@ def _multistart(z0s, arrays, spec: _Spec, opts: _Options, batching: str = "map")
 
 @eqx.filter_jit
 def _jacobian_at(q, arrays, spec: _Spec):
-    if spec.model is not None:
-        r, slot = _residuals_physical(q, arrays, spec), jnp.zeros(0, jnp.int32)
-    else:
-        r, slot = _branch_residuals(_full_vector(q, spec, arrays), arrays, spec)
+    r, slot = _branch_residuals(_full_vector(q, spec, arrays), arrays, spec)
     J = jax.jacfwd(_residuals_physical)(q, arrays, spec)
     return r, J, slot
 
@@ -771,8 +768,7 @@ def fit_stiffness(
     - `init`: a `Rod` or mapping for the first start; default: the isotropic rod that best
       fits the data by linear least squares (Love's formulas).  Starts 2..`n_starts`
       (default 32) are random perturbations of it (log-normal stiffnesses, random
-      couplings and twists),
-      drawn from `key` (default `jax.random.key(0)`), solved in one jitted call:
+      couplings and twists), drawn from `key` (default `jax.random.key(0)`), solved in one jitted call:
       `batching="map"` (default, `jax.lax.map`, faster on CPU with the present register
       solver) or `"vmap"` (all starts in lock step).
     - `branch`: which register a point is matched to: `"nearest"` (the register whose (F, M)
@@ -976,6 +972,8 @@ def bootstrap(data: HelixData, fit: StiffnessFit, n: int, key: Array, *, kind: s
     """
     if fit.method == "linear":
         raise ValueError("bootstrap needs a fit from fit_stiffness (not fit_stiffness_linear)")
+    if fit.spec.spec.model is not None:
+        raise ValueError("bootstrap supports fits to HelixData only (finite-rod fits: resample and refit)")
     if kind not in ("cases", "parametric"):
         raise ValueError(f"kind must be 'cases' or 'parametric', got {kind!r}")
     if n < 2:

@@ -838,7 +838,7 @@ def solve_boundary_value(
     ```python
     rod = helixrod.Rod(1.0, 1.0, 0.77, uhat=(0.0, 1.0, 0.3))       # a helical spring
     start, end = helixrod.axial_ends(rod, 30.0, extension=12.0, rotation=30 * 1.044)
-    sol = helixrod.solve_boundary_value(rod, 30.0, start=start, end=end,
+    sol = helixrod.solve_boundary_value(rod, 30.0, start=start, end=end, segments=4,
                                         saveat=jnp.linspace(0, 30, 200))
     sol.force, sol.x            # reaction force; centreline
     ```

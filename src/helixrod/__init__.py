@@ -67,6 +67,30 @@ from ._sweep import (
 )
 from . import plot as plot
 
+# -- finite rods (issue 8) --
+from ._boundary import (
+    AbstractEnd as AbstractEnd,
+    BoundaryValueSolution as BoundaryValueSolution,
+    Clamped as Clamped,
+    Loaded as Loaded,
+    Tweezer as Tweezer,
+    axial_ends as axial_ends,
+    solve_boundary_value as solve_boundary_value,
+    wrench_growth_rate as wrench_growth_rate,
+)
+from ._finite_data import (
+    EndResponseData as EndResponseData,
+    ShapeData as ShapeData,
+    synthetic_end_response_data as synthetic_end_response_data,
+    synthetic_shape_data as synthetic_shape_data,
+)
+from ._response import (
+    ResponseCurve as ResponseCurve,
+    force_extension as force_extension,
+    rotation_response as rotation_response,
+)
+# -- end issue 8 --
+
 # DNA tweezers and spring mechanics (issue 6)
 from . import dna as dna
 from ._datasets import SpringExample as SpringExample, load_spring_example as load_spring_example

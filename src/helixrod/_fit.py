@@ -137,6 +137,9 @@ class _Spec:
     use_register: bool
     fit_register: bool
     errors_in_variables: bool
+    # A finite-rod forward model (issue 8, `_finite_fit.py`): a hashable callable
+    # `model(p_full, arrays) -> residuals`; None for the uniform-helix model.
+    model: object = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -349,12 +352,19 @@ def _branch_residuals(p_full, arrays, spec: _Spec):
     return jnp.concatenate([take(r) for r in residuals]), slot
 
 
+def _model_residuals(p_full, arrays, spec: _Spec):
+    """Normalised residuals of the forward model: the helix model, or a finite-rod one."""
+    if spec.model is not None:
+        return spec.model(p_full, arrays)
+    return _branch_residuals(p_full, arrays, spec)[0]
+
+
 def _residuals_internal(z, arrays, spec):
-    return _branch_residuals(_full_vector(_physical_from_internal(z, spec, arrays), spec, arrays), arrays, spec)[0]
+    return _model_residuals(_full_vector(_physical_from_internal(z, spec, arrays), spec, arrays), arrays, spec)
 
 
 def _residuals_physical(q, arrays, spec):
-    return _branch_residuals(_full_vector(q, spec, arrays), arrays, spec)[0]
+    return _model_residuals(_full_vector(q, spec, arrays), arrays, spec)
 
 
 # -- solvers ------------------------------------------------------------------------------
@@ -490,7 +500,9 @@ class StiffnessFit(eqx.Module):
     `slot` the register slot of `helix_equilibria` used per point; `predicted_force`,
     `predicted_moment`.  Convergence: `success`, `message`, `n_steps` (of the best start),
     `n_starts`, `n_agree` (starts that reached the best minimum, up to the symmetries),
-    `start_costs`.  `identifiability`: see `Identifiability`.
+    `start_costs`.  `identifiability`: see `Identifiability`.  `predicted`: for finite-rod
+    fits (`EndResponseData`, `ShapeData`), the model's predictions of the observed
+    quantities by name (`None` for helix data).
     """
 
     rod: Rod
@@ -516,6 +528,7 @@ class StiffnessFit(eqx.Module):
     absolute_sigma: bool = eqx.field(static=True)
     spec: object = eqx.field(static=True, repr=False)
     options: object = eqx.field(static=True, repr=False)
+    predicted: dict | None = None
 
     def interval(self, level: float = 0.95) -> dict[str, tuple[float, float]]:
         """Normal-approximation confidence intervals value ± z stderr, by name."""
@@ -562,8 +575,9 @@ def _rod_vector(rod: Rod):
 
 def _symmetries(spec: _Problem):
     """The non-identity frame symmetries that map the fixed parameters to themselves (none
-    when registers are matched: they fix the frame).  List of (text, element)."""
-    if spec.use_register:
+    when registers are matched or the rod is clamped in a known frame: both fix the frame).
+    List of (text, element)."""
+    if spec.use_register or spec.spec.model is not None:
         return []
     fixed = spec.fixed_dict
     out = []
@@ -781,7 +795,7 @@ def _as_vector(init, fixed, default):
 
 
 def fit_stiffness(
-    data: HelixData,
+    data,
     *,
     uhat: ArrayLike | None = None,
     fit_uhat: bool = False,
@@ -789,7 +803,7 @@ def fit_stiffness(
     init: Rod | Mapping[str, float] | None = None,
     branch: str = "nearest",
     method: str = "levenberg-marquardt",
-    n_starts: int = 32,
+    n_starts: int | None = None,
     key: Array | None = None,
     use_register: bool | None = None,
     errors_in_variables: bool = False,
@@ -806,13 +820,20 @@ def fit_stiffness(
     Minimises $\\tfrac12\\sum r^2$ over the free parameters, with $r$ the $\\sigma$-normalised
     residuals of the axial force and moment of one register per helix (module docstring).
 
+    `data` may also be finite-rod data (issue 8): `EndResponseData` (force, moment,
+    extension, rotation of a rod of known length) or `ShapeData` (centreline points under
+    known end loads); the forward model is then `solve_boundary_value`, differentiated
+    through the shooting root, with the same parameterisation, solver, covariance and
+    identifiability report (`helixrod._finite_fit`; `n_starts` defaults to 1 there, and
+    `branch`, `use_register`, `errors_in_variables`, `batching` do not apply).
+
     - `uhat`: the intrinsic twist, held fixed (default (0, 0, 0)); or `fit_uhat=True`.
     - `fix`: mapping name -> value of parameters held fixed (names as in `PARAM_NAMES`), e.g.
       `{"K13": 0, "K23": 0}` for the uncoupled model, `{"K2": ..}`.
     - `init`: a `Rod` or mapping for the first start; default: the isotropic rod that best
-      fits the data by linear least squares (Love's formulas).  Starts 2..`n_starts` are
-      random perturbations of it (log-normal stiffnesses, random couplings and twists),
-      drawn from `key` (default `jax.random.key(0)`), solved in one jitted call:
+      fits the data by linear least squares (Love's formulas).  Starts 2..`n_starts`
+      (default 32) are random perturbations of it (log-normal stiffnesses, random
+      couplings and twists), drawn from `key` (default `jax.random.key(0)`), solved in one jitted call:
       `batching="map"` (default, `jax.lax.map`, faster on CPU with the present register
       solver) or `"vmap"` (all starts in lock step).
     - `branch`: which register a point is matched to: `"nearest"` (the register whose (F, M)
@@ -846,7 +867,25 @@ def fit_stiffness(
     ```
     """
     if not isinstance(data, HelixData):
-        raise ValueError(f"data must be a HelixData, got {type(data).__name__}")
+        # Finite rods (issue 8): the same parameterisation, solver and report, with a
+        # forward model through the boundary-value solver.
+        from ._finite_fit import FINITE_DATA, fit_finite
+
+        if not isinstance(data, FINITE_DATA):
+            raise ValueError(
+                f"data must be a HelixData, EndResponseData or ShapeData, got {type(data).__name__}"
+            )
+        helix_only = dict(branch=(branch, "nearest"), use_register=(use_register, None),
+                          errors_in_variables=(errors_in_variables, False), batching=(batching, "map"))
+        for name, (value, default) in helix_only.items():
+            if value != default:
+                raise ValueError(f"fit_stiffness: {name}= applies to HelixData only")
+        return fit_finite(
+            data, uhat=uhat, fit_uhat=fit_uhat, fix=fix, init=init, method=method, n_starts=n_starts, key=key,
+            absolute_sigma=absolute_sigma, rtol=rtol, atol=atol, max_steps=max_steps,
+            learning_rate=learning_rate, weak_threshold=weak_threshold,
+        )
+    n_starts = 32 if n_starts is None else n_starts
     if branch not in BRANCHES:
         raise ValueError(f"branch must be one of {BRANCHES}, got {branch!r}")
     if method not in METHODS:
@@ -1006,6 +1045,8 @@ def bootstrap(data: HelixData, fit: StiffnessFit, n: int, key: Array, *, kind: s
     """
     if fit.method == "linear":
         raise ValueError("bootstrap needs a fit from fit_stiffness (not fit_stiffness_linear)")
+    if fit.spec.spec.model is not None:
+        raise ValueError("bootstrap supports fits to HelixData only (finite-rod fits: resample and refit)")
     if kind not in ("cases", "parametric"):
         raise ValueError(f"kind must be 'cases' or 'parametric', got {kind!r}")
     if n < 2:

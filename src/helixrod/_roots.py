@@ -356,24 +356,33 @@ def _factorable(a, b, c, sign_b, sign_c):
     $|c| < 2a$, the pair $\\sin\\varphi = -c/2a$, the (equal) minima; a small $b$ makes the one
     with $\\operatorname{sgn}\\cos\\varphi = \\operatorname{sgn} b$ the global one.
     """
-    c_zero = jnp.abs(c) <= jnp.abs(b)
+    c_zero = (jnp.abs(c) <= jnp.abs(b))[..., None]
     safe_a = jnp.where(a > 0, a, 1.0)
-    q = jnp.where(c_zero, -b, -c) / (2 * safe_a)
-    pair = (a > 0) & (jnp.abs(q) < 1)
+    q = (jnp.where(c_zero[..., 0], -b, -c) / (2 * safe_a))[..., None]
+    pair = (a[..., None] > 0) & (jnp.abs(q) < 1)
     r = jnp.sqrt(jnp.maximum(1 - q * q, 0.0))
-    zero = jnp.zeros_like(q)
-    # c = 0: axis roots (+-1, 0); the lower-energy one is phi = 0 when b >= 0.
-    rc = sign_c * r
-    cz_cos = jnp.stack([sign_b, jnp.where(pair, q, -sign_b), -sign_b, q], -1)
-    cz_sin = jnp.stack([zero, jnp.where(pair, rc, zero), zero, -rc], -1)
-    # b = 0: axis roots (0, +-1); the higher-energy one is phi = pi/2 when c >= 0.
-    rb = sign_b * r
-    bz_cos = jnp.stack([jnp.where(pair, rb, zero), zero, -rb, zero], -1)
-    bz_sin = jnp.stack([jnp.where(pair, q, -sign_c), sign_c, q, -sign_c], -1)
-    pick = c_zero[..., None]
-    cos_phi = jnp.where(pick, cz_cos, bz_cos)
-    sin_phi = jnp.where(pick, cz_sin, bz_sin)
-    valid = (jnp.arange(4) < 2) | pair[..., None]
+    sign_b, sign_c = sign_b[..., None], sign_c[..., None]
+    rb, rc = sign_b * r, sign_c * r
+    # Slot by slot with selects (elementwise, so XLA fuses them; stacking per-point arrays
+    # would materialise four more arrays).
+    slot = jnp.arange(NUM_SLOTS)
+
+    def by_slot(s0, s1, s2, s3):
+        return jnp.where(slot == 0, s0, jnp.where(slot == 1, s1, jnp.where(slot == 2, s2, s3)))
+
+    # c = 0: axis roots (+-1, 0), the lower-energy one phi = 0 when b >= 0, and the pair.
+    # b = 0: axis roots (0, +-1), the higher-energy one phi = pi/2 when c >= 0, and the pair.
+    cos_phi = jnp.where(
+        c_zero,
+        by_slot(sign_b, jnp.where(pair, q, -sign_b), -sign_b, q),
+        by_slot(jnp.where(pair, rb, 0.0), 0.0, -rb, 0.0),
+    )
+    sin_phi = jnp.where(
+        c_zero,
+        by_slot(0.0, jnp.where(pair, rc, 0.0), 0.0, -rc),
+        by_slot(jnp.where(pair, q, -sign_c), sign_c, q, -sign_c),
+    )
+    valid = (slot < 2) | pair
     return cos_phi, sin_phi, valid
 
 

@@ -134,28 +134,57 @@ def helix_equilibria(rod: Rod, kappa: ArrayLike, tau: ArrayLike) -> HelixEquilib
             lambda x: jnp.broadcast_to(x, shape + x.shape[len(batch) :]).reshape((size,) + x.shape[len(batch) :]),
             rod,
         )
+    if batch:
+        eq = _map_chunks(_equilibria_flat, (rod, kappa, tau), size)
+    else:
+        eq = _map_chunks(lambda k, t: _equilibria_flat(rod, k, t), (kappa, tau), size)
+    return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), eq)
+
+
+# Points per chunk on a CPU.  The per-point pipeline is a few dozen elementwise passes;
+# over a whole large batch each intermediate array streams through main memory, over a
+# chunk it stays in cache.  Best of 4e3 ... 1e5 points on 2 cores: 2e4 ... 5e4, ~30%
+# faster than one pass over 1e6 points (benchmarks/bench_equilibria.py).  On an
+# accelerator every chunk would be a round of kernel launches: one pass.
+_CPU_CHUNK = 32768
+
+
+def _map_chunks(fn, args, size):
+    """`fn(*args)` on flat arrays (leading axis `size`), in equal chunks of at most
+    `_CPU_CHUNK` points on a CPU, each chunk's results written in place.  Values equal
+    those of one pass up to rounding (another program may contract other FMAs)."""
+    if size <= _CPU_CHUNK or jax.default_backend() != "cpu":
+        return fn(*args)
+    count = -(-size // _CPU_CHUNK)
+    # Equal chunks, rounded up to a multiple of 1024 (odd sizes measured up to 1.6x slower);
+    # the last chunk overlaps its predecessor.
+    chunk = min(-(-size // (count * 1024)) * 1024, _CPU_CHUNK)
+
+    def chunk_at(start):
+        return jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, chunk), args)
+
+    shapes = jax.eval_shape(lambda: fn(*chunk_at(0)))
+    out = jax.tree.map(lambda s: jnp.zeros((size,) + s.shape[1:], s.dtype), shapes)
+
+    def body(i, out):
+        start = jnp.minimum(i * chunk, size - chunk)
+        values = fn(*chunk_at(start))
+        return jax.tree.map(lambda o, v: jax.lax.dynamic_update_slice_in_dim(o, v, start, 0), out, values)
+
+    return jax.lax.fori_loop(0, count, body, out)
+
+
+def _equilibria_flat(rod: Rod, kappa, tau) -> HelixEquilibria:
+    """`helix_equilibria` on flat `kappa`, `tau` of shape (n,) (rod unbatched or (n,))."""
     A, B, C = register_coefficients(rod, kappa, tau)
     good = jnp.isfinite(kappa) & jnp.isfinite(tau) & (kappa >= 0)
+    straight = good & (kappa == 0)
     helical = good & (kappa > 0)
     # Outside the domain solve a harmless problem and mask it.
     A = jnp.where(helical, A, 1.0)
     B = jnp.where(helical, B, 0.0)
     C = jnp.where(helical, C, 0.0)
-    # The registers of the whole batch at once (the solver chunks and gathers its rare hard
-    # points itself), then the rest: one elementwise pass (chunking it measured no faster).
-    registers = register_roots(A, B, C)
-    eq = _equilibria_flat(rod, kappa, tau, (A, B, C), registers)
-    return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), eq)
-
-
-def _equilibria_flat(rod: Rod, kappa, tau, coefficients, registers) -> HelixEquilibria:
-    """`helix_equilibria` on flat `kappa`, `tau` of shape (n,) (rod unbatched or (n,)),
-    given their register coefficients and registers."""
-    A, B, C = coefficients
-    good = jnp.isfinite(kappa) & jnp.isfinite(tau) & (kappa >= 0)
-    straight = good & (kappa == 0)
-    helical = good & (kappa > 0)
-    phi, cos_phi, sin_phi, valid, continuum, tangent = registers
+    phi, cos_phi, sin_phi, valid, continuum, tangent = register_roots(A, B, C)
     valid = valid & helical[..., None]
     continuum = continuum & helical
 

@@ -293,11 +293,10 @@ def _solve(A, B, C, careful=False):
 
 
 def _solve_all(A, B, C):
-    """Fast path over the whole batch (one elementwise pass per step; processing it in
-    cache-sized chunks measured no faster on a CPU, and on a GPU every chunk is a round of
-    kernel launches), then the points it
-    leaves unconverged re-solved by the careful path, gathered from the whole batch
-    `_FALLBACK_BATCH` at a time (so that their cost follows their number)."""
+    """Fast path over the whole batch (`helix_equilibria` hands it cache-sized chunks on a
+    CPU), then the points it leaves unconverged re-solved by the careful path, gathered
+    from the whole batch `_FALLBACK_BATCH` at a time (so that their cost follows their
+    number)."""
     A, B, C = jnp.broadcast_arrays(*(jnp.asarray(x, jnp.result_type(A, B, C, float)) for x in (A, B, C)))
     shape = A.shape
     n = A.size

@@ -922,8 +922,8 @@ def test_float32_accuracy(rng):
     inputs.  Expected: same register count everywhere; phi within 32 eps32 (3.8e-6) and F, M
     within 16 eps32 (1.9e-6) normwise -- float32 loses nothing beyond its own precision
     away from tangencies (near one the eps/gap rule applies with eps32).  `solve_static` in
-    float32 (10 turns of the README helix, default tolerances, which float32 cannot meet: the
-    step size is then set by round-off): frame within 2e-3, centreline within 1e-4 L."""
+    float32 (10 turns of the README helix, default solver and float32 tolerances, 1e-6):
+    frame within 2e-3, centreline within 1e-4 L."""
     from conftest import random_rods
 
     rods_ = random_rods(rng, N)

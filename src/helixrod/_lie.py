@@ -207,17 +207,20 @@ _DEXPINV = ((1, 0.5), (2, 1 / 12), (4, -1 / 720), (6, 1 / 30240))
 
 
 def _dexpinv(theta, k):
-    """$\\mathrm{dexp}^{-1}_{-\\theta}(k)$ to $O(|\\theta|^7)$: the body-frame form needed when
-    $g = g_0 \\exp\\theta$ solves $g' = g\\,k$ ($\\theta' = \\mathrm{dexp}^{-1}_{-\\theta} k$)."""
-    out = k
-    term = k
-    power = 0
-    for order, coefficient in _DEXPINV:
-        while power < order:
-            term = _bracket(theta, term)
-            power += 1
-        out = jax.tree.map(lambda o, t: o + coefficient * t, out, term)
-    return out
+    r"""$\mathrm{dexp}^{-1}_{-\theta}(k)$ to $O(|\theta|^7)$: the body-frame form needed when
+    $g = g_0 \exp\theta$ solves $g' = g\,k$ ($\theta' = \mathrm{dexp}^{-1}_{-\theta} k$).
+
+    In Horner form, $k + \mathrm{ad}(c_1 k + \mathrm{ad}(c_2 k + \mathrm{ad}^2(c_4 k +
+    \mathrm{ad}^2(c_6 k))))$: every bracket is used once, so XLA fuses the chain without
+    recomputing shared terms."""
+    (_, c1), (_, c2), (_, c4), (_, c6) = _DEXPINV
+    ad = lambda x: _bracket(theta, x)  # noqa: E731
+    plus = lambda x, c: jax.tree.map(lambda a, b: a + c * b, x, k)  # noqa: E731
+    t = jax.tree.map(lambda a: c6 * a, k)
+    t = plus(ad(ad(t)), c4)
+    t = plus(ad(ad(t)), c2)
+    t = plus(ad(t), c1)
+    return plus(ad(t), 1.0)
 
 
 class MuntheKaasRK(diffrax.AbstractAdaptiveSolver):
@@ -264,7 +267,10 @@ class MuntheKaasRK(diffrax.AbstractAdaptiveSolver):
         ks = [k]  # dexpinv-corrected stage velocities
 
         def theta_of(row):
-            return jax.tree.map(lambda *a: h * sum(c * x for c, x in zip(row, a) if c != 0), *ks)
+            # A contraction of the stacked stages: XLA keeps each stage in memory instead
+            # of fusing (and so recomputing) the whole chain of stages into every use.
+            weights = jnp.asarray(row, dtype=h.dtype)
+            return tuple(h * (weights @ jnp.stack([k[i] for k in ks[: len(row)]])) for i in range(2))
 
         for c, row in zip(self.c, self.a_lower):
             theta = theta_of(row)

@@ -76,7 +76,7 @@ def rows_sweep(r):
             p = peer[run_["points"]]
             out.append(_row("sweep", f"{run_['points']:.1e}-point grid, fields: {run_['fields']}", "sweep (chunked, sharded)",
                             acc["max_dphi"], run_["seconds"], r["compile_s"].get(run_["fields"]), "numpy peer (all fields)",
-                            acc["max_dphi"], p["seconds"], note="error: max |dphi| between the two"))
+                            acc["max_dphi"], p["seconds"], note="error: largest phi difference between the two"))
     if "memory" in r:
         m = r["memory"]
         out.append(_row("sweep", f"{m['points']:.0e}-point count-only sweep, fresh process", "sweep", None, m["seconds"],
@@ -91,7 +91,7 @@ def rows_kirchhoff(r):
             continue
         d, ref = h["default"], h["dop853"]
         if d:
-            out.append(_row("kirchhoff", case, f"solve_static default ({d['method']}, tol {d['tol']:.0e})", d["error"],
+            out.append(_row("kirchhoff", case, f"solve_static defaults ({d['method'].replace(' (default)', '')}, tol {d['tol']:.0e})", d["error"],
                             d["wall_s"], d.get("compile_s"), "scipy DOP853, tol 1e-10", ref["error"], ref["wall_s"]))
         f = h.get("fastest_diffrax")
         if f and (not d or f["run"]["method"] != d["method"] or f["run"]["tol"] != d["tol"]):

@@ -314,24 +314,20 @@ class _Options(eqx.Module):
     continuation: int = eqx.field(static=True)
     guess_kind: str = eqx.field(static=True)
 
+    def integrate(self, rod, n0, m0, length, ode_tol, **kwargs):
+        """`solve_static` with this configuration's integrator, frame and centreline
+        integrated, `throw=False` (a failed piece is flagged, never raised)."""
+        return solve_static(
+            rod, n0, m0, length, outputs=("frame", "centreline"), solver=self.solver, rtol=ode_tol[0],
+            atol=ode_tol[1], max_steps=self.max_ode_steps, adjoint=self.adjoint, throw=False, **kwargs,
+        )
+
 
 def _flow_one(theta, wrench, options: _Options, ode_tol):
     """Integrate one piece from the identity pose at the origin with local start wrench
     `wrench` (6,): the flat (18,) vector (p, R, n_end, m_end); NaN if the solve failed."""
     rod, piece = theta
-    sol = solve_static(
-        rod,
-        wrench[:3],
-        wrench[3:],
-        piece,
-        outputs=("frame", "centreline"),
-        solver=options.solver,
-        rtol=ode_tol[0],
-        atol=ode_tol[1],
-        max_steps=options.max_ode_steps,
-        adjoint=options.adjoint,
-        throw=False,
-    )
+    sol = options.integrate(rod, wrench[:3], wrench[3:], piece, ode_tol)
     out = jnp.concatenate([sol.x[-1], sol.frame[-1].reshape(9), sol.n[-1], sol.m[-1]])
     return jnp.where(sol.ok, out, jnp.nan)
 
@@ -602,21 +598,9 @@ def _axial_guess(rod, length, start, end: _EndData, guess_kind: str):
 def _trajectory_nodes(rod, length, start, N, M0, k, options: _Options, ode_tol):
     """Nodes at s = jL/k from integrating the start wrench (N, M0) (the single-shooting
     trajectory of a guess); the unloaded nodes where that integration fails."""
-    sol = solve_static(
-        rod,
-        start.frame.T @ N,
-        start.frame.T @ M0,
-        length,
-        frame0=start.frame,
-        x0=start.position,
+    sol = options.integrate(
+        rod, start.frame.T @ N, start.frame.T @ M0, length, ode_tol, frame0=start.frame, x0=start.position,
         saveat=jnp.arange(k + 1) * (length / k),
-        outputs=("frame", "centreline"),
-        solver=options.solver,
-        rtol=ode_tol[0],
-        atol=ode_tol[1],
-        max_steps=options.max_ode_steps,
-        adjoint=options.adjoint,
-        throw=False,
     )
     x_free, frame_free = _free_nodes(rod, length, start, k)
     good = sol.ok & jnp.all(jnp.isfinite(sol.x)) & jnp.all(jnp.isfinite(sol.frame))
@@ -745,21 +729,9 @@ def _observe(args: _Args, options: _Options, N, M0, xs, frames, saveat, x_last, 
         # Save times outside the piece are clipped to its ends (repeated save times are
         # allowed) and never selected below.
         local = jnp.clip(saveat - j * piece, 0.0, piece)
-        sol = solve_static(
-            args.rod,
-            frames[j].T @ N,
-            frames[j].T @ moments[j],
-            piece,
-            frame0=frames[j],
-            x0=xs[j],
+        sol = options.integrate(
+            args.rod, frames[j].T @ N, frames[j].T @ moments[j], piece, args.ode_tol, frame0=frames[j], x0=xs[j],
             saveat=local,
-            outputs=("frame", "centreline"),
-            solver=options.solver,
-            rtol=args.ode_tol[0],
-            atol=args.ode_tol[1],
-            max_steps=options.max_ode_steps,
-            adjoint=options.adjoint,
-            throw=False,
         )
         return sol.x, sol.frame, sol.n, sol.m
 

@@ -338,7 +338,7 @@ def plot(results, path):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--quick", action="store_true", help="fewer tolerances, lengths and repeats")
+    parser.add_argument("--quick", action="store_true", help="fewer tolerances, lengths and repeats; no adjoint comparison")
     parser.add_argument("--repeats", type=int, default=None)
     args = parser.parse_args()
     repeats = args.repeats or (3 if args.quick else 7)
@@ -351,9 +351,10 @@ def main():
     results["curve"] = bench_curve(50, tols, scipy_tols[:2] if args.quick else scipy_tols[:4], repeats)
     print("3. shape fit (2 images x 25 points, 5 stiffnesses) and its Jacobian")
     results["fit"] = bench_fit(max(1, repeats // 2))
-    results["adjoint"] = bench_adjoints(repeats)
+    if not args.quick:  # the adjoint choice: three more compilations of ~25-50 s each
+        results["adjoint"] = bench_adjoints(repeats)
     print("4. single vs multiple shooting, spring stretched at fixed end rotation")
-    turns = [2, 5, 10, 20, 40] if args.quick else [2, 3, 5, 7, 10, 15, 20, 30, 40]
+    turns = [2, 5, 10, 20] if args.quick else [2, 3, 5, 7, 10, 15, 20, 30, 40]
     results["shooting"] = bench_shooting(turns, [1.1, 1.5], [1, 4, 16])
     for key in ("clamped", "curve"):
         for h in results[key]["headline"]:

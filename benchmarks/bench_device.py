@@ -26,6 +26,7 @@ import helixrod as hr  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _numpy_peer import numpy_helix_equilibria  # noqa: E402
+from _timing import best_time  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
 ROD_ARGS = dict(K1=1.0, K2=1.5, K3=0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
@@ -35,15 +36,6 @@ ROD = hr.Rod(**ROD_ARGS)
 def fields(kappa, tau):
     eq = hr.helix_equilibria(ROD, kappa, tau)
     return eq.phi, eq.valid, eq.force, eq.moment, eq.stable
-
-
-def best(fn, repeats=3):
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def main():
@@ -80,10 +72,10 @@ def main():
         compiled = jitted.lower(kj, tj).compile()
         compile_s = time.perf_counter() - start
         jax.block_until_ready(compiled(kj, tj))
-        seconds = best(lambda: jax.block_until_ready(compiled(kj, tj)))
+        seconds = best_time(lambda: compiled(kj, tj), 3)
         peer = None
         if n <= 10**6:
-            peer = best(lambda: numpy_helix_equilibria(**ROD_ARGS, kappa=k, tau=t), 1)
+            peer = best_time(lambda: numpy_helix_equilibria(**ROD_ARGS, kappa=k, tau=t), 1)
         report["runs"].append(dict(points=n, seconds=seconds, compile_s=compile_s, points_per_s=n / seconds,
                                    numpy_host_seconds=peer))
         print(f"helix_equilibria {n:>10} helices: {seconds * 1e3:9.2f} ms ({n / seconds:.3g}/s), compile {compile_s:.1f} s"
@@ -95,7 +87,7 @@ def main():
     for n_side, names in grids:
         kappa, tau = np.linspace(0.01, 3.0, n_side), np.linspace(-3.0, 3.0, n_side)
         hr.sweep(ROD, kappa[:2], tau[:2], fields=names, progress=False)  # compile
-        seconds = best(lambda: hr.sweep(ROD, kappa, tau, fields=names, progress=False), 2)
+        seconds = best_time(lambda: hr.sweep(ROD, kappa, tau, fields=names, progress=False), 2)
         report["sweeps"].append(dict(points=n_side**2, fields=list(names), seconds=seconds, points_per_s=n_side**2 / seconds))
         print(f"sweep {n_side**2:>10} points {names}: {seconds:.2f} s ({n_side**2 / seconds:.3g}/s)")
     RESULTS.mkdir(exist_ok=True)

@@ -37,6 +37,7 @@ import numpy as np  # noqa: E402
 from scipy.integrate import solve_bvp  # noqa: E402
 
 import helixrod as hr  # noqa: E402
+from _timing import best_time  # noqa: E402
 from helixrod import _axial  # noqa: E402
 
 RESULTS = pathlib.Path(__file__).parent / "results"
@@ -44,15 +45,6 @@ SPRING = hr.Rod(1.0, 1.0, 1 / 1.3, uhat=(0.0, 1.0, 0.3))
 NORM = math.hypot(1.0, 0.3)
 TURN = 2 * math.pi / NORM
 NSAVE = 41
-
-
-def best_time(fn, repeats):
-    best = np.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        best = min(best, time.perf_counter() - start)
-    return best
 
 
 # -- the scipy peer -------------------------------------------------------------------------

@@ -26,6 +26,7 @@ import numpy as np  # noqa: E402
 from scipy.integrate import solve_ivp  # noqa: E402
 
 import helixrod as hr  # noqa: E402
+from _timing import best_time  # noqa: E402
 
 ROD = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
 RESULTS = pathlib.Path(__file__).parent / "results"
@@ -76,15 +77,6 @@ def scipy_solve(problem, method, tol):
 
 def error(problem, frame, x):
     return float(max(np.abs(np.asarray(frame) - problem["frame"]).max(), np.abs(np.asarray(x) - problem["x"]).max()))
-
-
-def best_time(fn, repeats):
-    best = np.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        best = min(best, time.perf_counter() - start)
-    return best
 
 
 def diffrax_runs(problem, solvers, tols, repeats):

@@ -31,6 +31,7 @@ from helixrod._sweep import FIELDS, _chunk_function, _equilibrium_point_fn, _pad
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _numpy_peer import numpy_helix_equilibria  # noqa: E402
+from _timing import best_time  # noqa: E402
 
 ROD_ARGS = dict(K1=1.0, K2=1.5, K3=0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))  # Chouaieb-Goriely-Maddocks fig. 2
 ROD = hr.Rod(ROD_ARGS["K1"], ROD_ARGS["K2"], ROD_ARGS["K3"], ROD_ARGS["K13"], ROD_ARGS["K23"], ROD_ARGS["uhat"])
@@ -45,15 +46,6 @@ RESULTS = Path(__file__).parent / "results"
 def grid(n_points):
     side = int(round(np.sqrt(n_points)))
     return np.linspace(0.01, 3.0, side), np.linspace(-3.0, 3.0, int(round(n_points / side)))
-
-
-def best_time(fn, repeats):
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def flops_per_point(fields):

@@ -141,3 +141,20 @@ def test_fallback_agrees_with_fast_path(rng):
     merged = [np.asarray(x) for x in solve(A, B, C)]
     np.testing.assert_array_equal(merged[3], long[3])
     assert np.max(np.where(merged[3], angular_distance(merged[0], long[0]), 0)) < 1e-14
+
+
+def test_angle_against_mpmath(rng):
+    """phi from (cos, sin) by the octant reduction and polynomial of `_roots._angle`, against
+    40-digit atan2 of the same float64 pair: random angles, the axes and diagonals (the
+    octant boundaries) with their neighbours, signed zeros, and angles just below 2 pi."""
+    from helixrod import _roots
+
+    special = np.concatenate([np.arange(16) * np.pi / 8, np.arange(16) * np.pi / 8 + 1e-9, [2 * np.pi - 1e-12]])
+    angles = np.concatenate([rng.uniform(0, 2 * np.pi, 4000), special, np.nextafter(special, -1)])
+    c, s = np.cos(angles), np.sin(angles)
+    c = np.concatenate([c, [1.0, -1.0, 0.0, -0.0]])
+    s = np.concatenate([s, [-0.0, -0.0, 1.0, -1.0]])
+    phi = np.asarray(jax.jit(_roots._angle)(c, s))
+    ref = np.array([float(mpmath.atan2(y, x) % (2 * mpmath.pi)) for x, y in zip(c, s)])
+    assert np.all((phi >= 0) & (phi < 2 * np.pi))
+    assert np.max(angular_distance(phi, ref)) <= 9e-16

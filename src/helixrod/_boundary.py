@@ -44,6 +44,7 @@ of the converged solve: forward mode with the default `diffrax.ForwardMode()`,
 from __future__ import annotations
 
 import abc
+import functools
 
 import diffrax
 import equinox as eqx
@@ -63,7 +64,7 @@ from ._axial import (
     unloaded_observables,
     unloaded_state,
 )
-from ._kirchhoff import solve_static
+from ._kirchhoff import check_one_rod, solve_static
 from ._lie import CommutatorFreeRK4, MuntheKaasRK, so3_exp, vee
 
 METHODS = ("levenberg-marquardt", "newton")
@@ -156,16 +157,17 @@ class _EndData(eqx.Module):
 
 
 def _end_data(kind, position=None, frame=None, force=None, moment=None, point=None):
+    # NumPy constants: no eager JAX dispatch per solve (they are traced like JAX arrays).
     dtype = jnp.result_type(float)
-    zero = jnp.zeros(3, dtype)
+    zero = np.zeros(3, dtype)
     return _EndData(
-        kind=jnp.asarray(kind, jnp.int32),
+        kind=np.asarray(kind, np.int32),
         position=zero if position is None else position,
-        frame=jnp.eye(3, dtype=dtype) if frame is None else frame,
+        frame=np.eye(3, dtype=dtype) if frame is None else frame,
         force=zero if force is None else force,
         moment=zero if moment is None else moment,
         point=zero if point is None else point,
-        about_end=jnp.asarray(point is None and kind == _LOADED),
+        about_end=np.asarray(point is None and kind == _LOADED),
     )
 
 
@@ -341,10 +343,18 @@ def _tangent_part(tree, tangents):
     return diff, static, eqx.filter(tangents, mask, is_leaf=is_none)
 
 
+def _per_piece(fn, xs):
+    """`jax.vmap(fn)(xs)` over the pieces (leading axis); a single piece without `vmap`:
+    a batched integration loop was measured to cost about twice as much."""
+    if xs.shape[0] == 1:
+        return jax.tree.map(lambda a: a[None], fn(xs[0]))
+    return jax.vmap(fn)(xs)
+
+
 @eqx.filter_custom_jvp
 def _flows(wrench, theta, ode_tol, *, options):
     """Flows of all pieces, `(k, 18)`, from their local start wrenches `(k, 6)`."""
-    return jax.vmap(lambda w: _flow_one(theta, w, options, ode_tol))(wrench)
+    return _per_piece(lambda w: _flow_one(theta, w, options, ode_tol), wrench)
 
 
 @_flows.def_jvp
@@ -352,22 +362,26 @@ def _flows_jvp(primals, tangents, *, options):
     # The Jacobian with respect to the start wrench depends on primals only: computed once
     # per piece (six tangent integrations, all pieces in parallel) and reused by every
     # tangent direction -- a Newton step of k pieces costs what one of single shooting does.
+    # It is integrated at the Jacobian tolerance `ode_tol[2:]` (`_jacobian_tolerance`: looser
+    # inside Newton's iteration, where it only steers the steps; the ODE tolerance itself
+    # for the derivatives of the solution, `_implicit`), the flows at `ode_tol[:2]`.
     wrench, theta, ode_tol = primals
     t_wrench, t_theta, _ = tangents
 
-    def value_and_jacobian(w):
+    def jacobian(w):
         basis = jnp.eye(6, dtype=w.dtype)
-        one = lambda ww: _flow_one(theta, ww, options, ode_tol)  # noqa: E731
-        return jax.vmap(lambda v: jax.jvp(one, (w,), (v,)), out_axes=(None, 0))(basis)
+        one = lambda ww: _flow_one(theta, ww, options, ode_tol[2:])  # noqa: E731
+        return jax.vmap(lambda v: jax.jvp(one, (w,), (v,))[1])(basis)
 
-    out, jac = jax.vmap(value_and_jacobian)(wrench)  # (k, 18), (k, 6, 18)
+    out = _per_piece(lambda w: _flow_one(theta, w, options, ode_tol), wrench)  # (k, 18)
+    jac = _per_piece(jacobian, wrench)  # (k, 6, 18)
     t_out = jnp.zeros_like(out)
     if t_wrench is not None:
         t_out = t_out + jnp.einsum("kij,ki->kj", jac, t_wrench)
     if t_theta is not None and jax.tree.leaves(t_theta):
         diff, static = _tangent_part(theta, t_theta)[:2]
         t_diff = _tangent_part(theta, t_theta)[2]
-        flows = lambda d: jax.vmap(lambda w: _flow_one(eqx.combine(d, static), w, options, ode_tol))(wrench)  # noqa: E731
+        flows = lambda d: _per_piece(lambda w: _flow_one(eqx.combine(d, static), w, options, ode_tol), wrench)  # noqa: E731
         t_out = t_out + jax.jvp(flows, (diff,), (t_diff,))[1]
     return out, t_out
 
@@ -382,7 +396,7 @@ class _Args(eqx.Module):
     ref_x: Array  # (k-1, 3) reference node positions
     ref_frame: Array  # (k-1, 3, 3) reference node frames
     scales: Array  # (ell, force scale, moment scale)
-    ode_tol: Array  # (rtol, atol)
+    ode_tol: Array  # (rtol, atol) of the flows, then (rtol, atol) of their Jacobian
 
 
 def _nodes(y, args: _Args, k: int):
@@ -406,7 +420,7 @@ def _pieces(y, args: _Args, options: _Options, materialise: bool = True):
     if materialise:
         flows = _flows(local, theta, args.ode_tol, options=options)
     else:
-        flows = jax.vmap(lambda w: _flow_one(theta, w, options, args.ode_tol))(local)
+        flows = _per_piece(lambda w: _flow_one(theta, w, options, args.ode_tol), local)
     p, R, n_end, m_end = flows[:, :3], flows[:, 3:12].reshape(k, 3, 3), flows[:, 12:15], flows[:, 15:]
     x_end = xs + jnp.einsum("kij,kj->ki", frames, p)
     frame_end = frames @ R
@@ -431,23 +445,32 @@ class _LMState(eqx.Module):
     f_best: Array
     jac_best: Array
     aux_best: object
-    aux_jac_best: object
     cost_best: Array
     damping: Array
+    fresh: Array
+    refresh: Array
     step: Array
 
 
-class _TrustNewton(optx.AbstractRootFinder):
-    """Newton's method for square systems with Levenberg--Marquardt damping, as an
-    optimistix root finder; it keeps the Jacobian of the point it returns.
+# A Broyden step that reduces |f| by less than this factor asks for a fresh Jacobian.
+_SLOW_PROGRESS = 0.1
 
-    One linearisation of `fn` per step: the trial point of the previous step is evaluated
-    and accepted if it lowers $\\tfrac12|f|^2$ (then the damping $\\lambda$ shrinks tenfold)
-    or rejected (the step is retried from the best point with $\\lambda$ ten times larger);
-    the step solves $(J^TJ + \\lambda\\,\\mathrm{diag}J^TJ)\\,\\delta = -J^Tf$, Newton's step as
-    $\\lambda\\to 0$ (`damped=False`: plain Newton steps, always accepted).  Terminates when
-    $\\max|f| <$ `atol` at the best point, which it returns with the Jacobians of $f$ and
-    of the auxiliary output there (`state`).
+
+class _TrustNewton(optx.AbstractRootFinder):
+    """Newton's method for square systems with Levenberg--Marquardt damping and Broyden
+    updates, as an optimistix root finder.
+
+    Each step evaluates `fn` at the trial point of the previous one and accepts it if it
+    lowers $\\tfrac12|f|^2$ (then the damping $\\lambda$ shrinks tenfold) or rejects it (the
+    step is retried from the best point with $\\lambda$ ten times larger); the step solves
+    $(J^TJ + \\lambda\\,\\mathrm{diag}J^TJ)\\,\\delta = -J^Tf$, Newton's step as $\\lambda\\to 0$
+    (`damped=False`: plain Newton steps, always accepted).  The Jacobian $J$ is a full
+    linearisation of `fn` (`_jacobian_tolerance`) at the first point, after a step that
+    reduced $|f|$ by less than a factor `_SLOW_PROGRESS` and after a step rejected with a
+    secant Jacobian; otherwise the previous one with Broyden's
+    rank-one secant update $J \\leftarrow J + (\\Delta f - J\\Delta y)\\Delta y^T/|\\Delta y|^2$,
+    so that most steps cost one evaluation of `fn` (one integration of the rod) instead of
+    seven.  Terminates when $\\max|f| <$ `atol` at the best point, which it returns.
     Written here rather than using `optimistix.LevenbergMarquardt` because a least-squares
     solver is differentiated through its normal equations (reverse mode through the
     integrator) and evaluates `fn` more than once per step (a larger compiled program).
@@ -465,22 +488,38 @@ class _TrustNewton(optx.AbstractRootFinder):
             f_best=jnp.full(f_struct.shape, jnp.inf, f_struct.dtype),
             jac_best=jnp.zeros((f_struct.size, y.size), y.dtype),
             aux_best=jax.tree.map(zeros, aux_struct),
-            aux_jac_best=jax.tree.map(lambda a: jnp.zeros(a.shape + (y.size,), a.dtype), aux_struct),
             cost_best=jnp.array(jnp.inf, y.dtype),
             damping=jnp.array(1e-6 if self.damped else 0.0, y.dtype),
+            fresh=jnp.array(False),
+            refresh=jnp.array(True),
             step=jnp.array(0),
         )
 
     def step(self, fn, y, args, options, state: _LMState, tags):
-        (f, aux), lin = jax.linearize(lambda z: fn(z, args), y)
-        jac, aux_jac = jax.vmap(lin, out_axes=-1)(jnp.eye(y.size, dtype=y.dtype))
+        def linearised():
+            f, lin, aux = jax.linearize(lambda z: fn(z, args), y, has_aux=True)
+            return f, aux, jax.vmap(lin, out_axes=-1)(jnp.eye(y.size, dtype=y.dtype))
+
+        def secant():
+            f, aux = fn(y, args)
+            dy, df = y - state.y_best, f - state.f_best
+            dy2 = jnp.sum(dy * dy)
+            update = jnp.outer(df - state.jac_best @ dy, dy) / jnp.where(dy2 > 0, dy2, 1.0)
+            good = (dy2 > 0) & jnp.all(jnp.isfinite(update))
+            return f, aux, jnp.where(good, state.jac_best + update, state.jac_best)
+
+        f, aux, jac = jax.lax.cond(state.refresh, linearised, secant)
         cost = 0.5 * jnp.sum(f * f)
         finite = jnp.all(jnp.isfinite(jac)) & jnp.isfinite(cost)
         accept = finite & (cost < state.cost_best) if self.damped else finite
+        slow = ~(cost < _SLOW_PROGRESS**2 * state.cost_best)
         pick = lambda a, b: jax.tree.map(lambda x, z: jnp.where(accept, x, z), a, b)  # noqa: E731
-        y_best, f_best, jac_best, aux_best, aux_jac_best = pick(
-            (y, f, jac, aux, aux_jac), (state.y_best, state.f_best, state.jac_best, state.aux_best, state.aux_jac_best)
-        )
+        y_best, f_best, aux_best = pick((y, f, aux), (state.y_best, state.f_best, state.aux_best))
+        # A linearisation belongs to its point; a secant update (also from a rejected
+        # point) improves the Jacobian wherever the iteration stands.
+        take = jnp.where(state.refresh, accept, finite)
+        jac_best = jnp.where(take, jac, state.jac_best)
+        fresh = jnp.where(take, state.refresh, state.fresh)
         cost_best = jnp.where(accept, cost, state.cost_best)
         if self.damped:
             damping = jnp.where(accept, jnp.maximum(state.damping / 10, 1e-12), state.damping * 10)
@@ -491,7 +530,10 @@ class _TrustNewton(optx.AbstractRootFinder):
             damping = jnp.where(accept, state.damping, jnp.inf)
             delta = jnp.linalg.solve(jac_best, f_best)
         delta = jnp.where(jnp.all(jnp.isfinite(delta)), delta, 0.0)
-        new_state = _LMState(y_best, f_best, jac_best, aux_best, aux_jac_best, cost_best, damping, state.step + 1)
+        # Relinearise after slow progress, or after a rejected step taken with a secant
+        # Jacobian (a rejected step with an exact one only needs more damping).
+        refresh = jnp.where(accept, slow, ~fresh)
+        new_state = _LMState(y_best, f_best, jac_best, aux_best, cost_best, damping, fresh, refresh, state.step + 1)
         return y_best - delta, new_state, aux
 
     def terminate(self, fn, y, args, options, state: _LMState, tags):
@@ -506,22 +548,21 @@ class _TrustNewton(optx.AbstractRootFinder):
 
 def _root(y0, args: _Args, options: _Options, rtol, atol):
     """Solve the shooting equations (no derivatives: see `_implicit`).  Returns the root,
-    the pieces there (aux), the result code, the number of steps and the Jacobians of the
-    residual and of the pieces there."""
+    the pieces there (aux), the result code and the number of steps."""
     fn = lambda y, a: _residual(y, a, options)  # noqa: E731
     solver = _TrustNewton(rtol=rtol, atol=atol, damped=options.method != "newton")
     y0, args = no_gradient((y0, args))
     sol = optx.root_find(fn, solver, y0, args, has_aux=True, max_steps=options.max_steps, throw=False)
-    return sol.value, sol.aux, sol.result, sol.stats["num_steps"], (sol.state.jac_best, sol.state.aux_jac_best)
+    return sol.value, sol.aux, sol.result, sol.stats["num_steps"]
 
 
 @eqx.filter_custom_jvp
-def _implicit(y, pieces, jacobians, args, *, options):
+def _implicit(y, pieces, args, *, options):
     """The root `y` of the shooting equations at `args` and the `pieces` there, with the
     derivatives of the implicit function theorem: $\\dot y = -J^{-1}\\,\\partial_\\theta F\\,
     \\dot\\theta$ and $\\dot P = P_y\\dot y + \\partial_\\theta P\\,\\dot\\theta$, with the Jacobians
-    $J = F_y$ and $P_y$ that the root solve already has (`jacobians`) and one forward-mode
-    pass through the flows for $\\partial_\\theta$.  (Not `optimistix.ImplicitAdjoint`: its
+    $J = F_y$ and $P_y$ integrated at the ODE tolerance itself (the root solve steers with
+    looser ones) and one forward-mode pass through the flows for $\\partial_\\theta$.  (Not `optimistix.ImplicitAdjoint`: its
     linear solve raises on a non-finite input, so one failed point would abort a
     differentiated batch; here a failed point gets NaN derivatives.)"""
     return y, pieces
@@ -529,10 +570,13 @@ def _implicit(y, pieces, jacobians, args, *, options):
 
 @_implicit.def_jvp
 def _implicit_jvp(primals, tangents, *, options):
-    y, pieces, (jac, pieces_jac), args = primals
-    t_args = tangents[3]
+    y, pieces, args = primals
+    t_args = tangents[2]
     if t_args is None or not jax.tree.leaves(t_args):
         return (y, pieces), jax.tree.map(jnp.zeros_like, (y, pieces))
+    exact = eqx.tree_at(lambda a: a.ode_tol, args, jnp.concatenate([args.ode_tol[:2], args.ode_tol[:2]]))
+    _, lin = jax.linearize(lambda z: _residual(z, exact, options), y)
+    jac, pieces_jac = jax.vmap(lin, out_axes=-1)(jnp.eye(y.size, dtype=y.dtype))
     diff, static, t_diff = _tangent_part(args, t_args)
     residual = lambda d: _residual(y, eqx.combine(d, static), options, materialise=False)  # noqa: E731
     _, (b, t_pieces) = jax.jvp(residual, (diff,), (t_diff,))
@@ -639,8 +683,29 @@ def _rebase(y, args: _Args, k: int) -> tuple[Array, _Args]:
     return y.at[6:].set(0.0), eqx.tree_at(lambda a: (a.ref_x, a.ref_frame), args, (xs[1:], frames[1:]))
 
 
-@eqx.filter_jit
-def _solve(rod, length, start, end: _EndData, guess, saveat, tolerances, options: _Options):
+# The Jacobian that steers Newton's iteration is integrated at no tighter than this.
+_JACOBIAN_ODE_TOL = 1e-6
+
+
+def _jacobian_tolerance(ode_tol):
+    """ODE (rtol, atol) of the Jacobian that steers Newton's iteration: looser than the
+    flows' own.  The Jacobian only sets the step (its error makes convergence linear with a
+    rate of about its relative error, and Broyden updates recover most of that), while the
+    residual -- and so the root -- keeps the full ODE tolerance.  On the spring of
+    `benchmarks/bench_finite.py` its six tangent integrations take 25 steps (the stability
+    cap of the step) instead of 58 at 1e-8 and 179 at 1e-10."""
+    return jnp.maximum(ode_tol, _JACOBIAN_ODE_TOL)
+
+
+_NOT_SOLVED = (
+    "solve_boundary_value: the shooting equations were not solved (invalid input, no "
+    "convergence, or residual above tolerance); try continuation=, more segments=, a "
+    "better guess=, or throw=False to inspect `result` and `residual`"
+)
+
+
+@functools.partial(jax.jit, static_argnames="throw")
+def _solve(rod, length, start, end: _EndData, guess, saveat, tolerances, options: _Options, throw: bool = False):
     dtype = jnp.result_type(float)
     rtol, atol = tolerances[0], tolerances[1]
     valid = jnp.isfinite(length) & (length > 0) & end.finite()
@@ -656,7 +721,7 @@ def _solve(rod, length, start, end: _EndData, guess, saveat, tolerances, options
     ell = length_scale(rod, length)
     k_scale = stiffness_scale(rod)
     scales = jnp.stack([ell, k_scale / ell**2, k_scale / ell])
-    ode_tol = tolerances[2:4]
+    ode_tol = jnp.concatenate([tolerances[2:4], _jacobian_tolerance(tolerances[2:4])])
 
     y0, ref_x, ref_frame = no_gradient(_initial(rod, length, start, end, guess, options, scales, ode_tol))
     args = _Args(rod, length, start, end, ref_x, ref_frame, scales, ode_tol)
@@ -670,7 +735,7 @@ def _solve(rod, length, start, end: _EndData, guess, saveat, tolerances, options
             y, ref_x, ref_frame, result, steps = carry
             end_t = frozen.end.homotopy(t, x_free, frame_free)
             args_t = eqx.tree_at(lambda a: (a.end, a.ref_x, a.ref_frame), frozen, (end_t, ref_x, ref_frame))
-            y, _, _, n, _ = _root(y, args_t, options, rtol, atol)
+            y, _, _, n = _root(y, args_t, options, rtol, atol)
             y, args_t = _rebase(y, args_t, k)
             return (y, args_t.ref_x, args_t.ref_frame, result, steps + n), None
 
@@ -679,9 +744,9 @@ def _solve(rod, length, start, end: _EndData, guess, saveat, tolerances, options
         args = eqx.tree_at(lambda a: (a.ref_x, a.ref_frame), args, (ref_x, ref_frame))
 
     # Intermediate homotopy steps need not converge: only the last solve counts.
-    y, aux, result, n, jacobians = _root(y0, args, options, rtol, atol)
+    y, aux, result, n = _root(y0, args, options, rtol, atol)
     steps = steps + n
-    y, (nodes, ends) = _implicit(y, aux, jacobians, args, options=options)
+    y, (nodes, ends) = _implicit(y, aux, args, options=options)
     (N, M0, xs, frames), (x_end, frame_end, force_end, moment_end) = nodes, ends
     junction_x = (x_end[:-1] - xs[1:]) / scales[0]
     junction_r = gibbs(jnp.swapaxes(frames[1:], -1, -2) @ frame_end[:-1])
@@ -691,7 +756,7 @@ def _solve(rod, length, start, end: _EndData, guess, saveat, tolerances, options
 
     out = _observe(args, options, N, M0, xs, frames, saveat, x_end[-1], frame_end[-1])
     nan = lambda a: jnp.where(valid, a, jnp.nan)  # noqa: E731
-    return BoundaryValueSolution(
+    sol = BoundaryValueSolution(
         s=out[0],
         x=nan(out[1]),
         frame=nan(out[2]),
@@ -713,6 +778,9 @@ def _solve(rod, length, start, end: _EndData, guess, saveat, tolerances, options
         valid_input=valid,
         tolerance=jnp.asarray(10 * atol, dtype),
     )
+    if throw:
+        sol = eqx.tree_at(lambda s: s.residual, sol, eqx.error_if(sol.residual, ~sol.ok, _NOT_SOLVED))
+    return sol
 
 
 def _observe(args: _Args, options: _Options, N, M0, xs, frames, saveat, x_last, frame_last):
@@ -735,7 +803,7 @@ def _observe(args: _Args, options: _Options, N, M0, xs, frames, saveat, x_last, 
         )
         return sol.x, sol.frame, sol.n, sol.m
 
-    x, frame, n, m = jax.vmap(one)(jnp.arange(k))
+    x, frame, n, m = _per_piece(one, jnp.arange(k))
     which = jnp.clip(jnp.floor(saveat / piece).astype(jnp.int32), 0, k - 1)
     idx = jnp.arange(saveat.shape[0])
     return saveat, x[which, idx], frame[which, idx], n[which, idx], m[which, idx]
@@ -834,8 +902,7 @@ def solve_boundary_value(
         raise ValueError(f"solve_boundary_value: segments must be an integer >= 1, got {segments!r}")
     if isinstance(continuation, bool) or not isinstance(continuation, (int, np.integer)) or continuation < 0:
         raise ValueError(f"solve_boundary_value: continuation must be an integer >= 0, got {continuation!r}")
-    if jnp.shape(rod.twist(jnp.zeros(3))) != (3,):
-        raise ValueError("solve_boundary_value solves one rod: jax.vmap over a batch of rods")
+    check_one_rod(rod, "solve_boundary_value")
     if not isinstance(end, AbstractEnd):
         raise ValueError(f"solve_boundary_value: end must be Clamped, Loaded or Tweezer, got {type(end).__name__}")
     if start is None:
@@ -888,15 +955,7 @@ def solve_boundary_value(
         guess_kind=guess_kind,
     )
     tolerances = jnp.asarray([rtol, atol, ode_rtol, ode_atol], dtype)
-    sol = _solve(rod, length, start, end.end_data(), guess, saveat, tolerances, options)
-    if throw:
-        message = (
-            "solve_boundary_value: the shooting equations were not solved (invalid input, no "
-            "convergence, or residual above tolerance); try continuation=, more segments=, a "
-            "better guess=, or throw=False to inspect `result` and `residual`"
-        )
-        sol = eqx.tree_at(lambda s: s.residual, sol, eqx.error_if(sol.residual, ~sol.ok, message))
-    return sol
+    return _solve(rod, length, start, end.end_data(), guess, saveat, tolerances, options, throw=bool(throw))
 
 
 # -- axial (spring and tweezer) conditions --------------------------------------------------

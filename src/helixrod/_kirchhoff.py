@@ -144,6 +144,18 @@ def _stability_step(rod, n0, m0):
     return jnp.maximum(frobenius_step, spectral_step)
 
 
+def check_one_rod(rod, owner: str) -> None:
+    """Raise `ValueError` unless `rod` is a single rod (not a batch), read from the shape of
+    its `uhat` (or, for a law without one, of its inverse law; without running it)."""
+    uhat = getattr(rod, "uhat", None)
+    if uhat is not None:
+        shape = jnp.shape(uhat)
+    else:
+        shape = jax.eval_shape(rod.twist, jax.ShapeDtypeStruct((3,), jnp.result_type(float))).shape
+    if shape != (3,):
+        raise ValueError(f"{owner} takes one rod: jax.vmap over a batch of rods")
+
+
 def _is_concrete(*xs) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(xs))
 
@@ -228,8 +240,7 @@ def solve_static(
     with_frame, store_frame, with_x = _parse_outputs(outputs)
     solver = MuntheKaasRK(diffrax.Dopri8()) if solver is None else solver
     geometric = isinstance(solver, (CommutatorFreeRK4, MuntheKaasRK))
-    if jnp.shape(rod.twist(jnp.zeros(3))) != (3,):
-        raise ValueError("solve_static integrates one rod: jax.vmap over a batch of rods")
+    check_one_rod(rod, "solve_static")
 
     dtype = jnp.result_type(float)
     default_tol = 1e-12 if dtype == jnp.float64 else 1e-6

@@ -44,6 +44,7 @@ from ._boundary import (
     _solve,
     axial_end_data,
 )
+from ._kirchhoff import check_one_rod
 from ._lie import CommutatorFreeRK4
 
 # Index of the two controls of each kind in (force, moment, extension, rotation).
@@ -181,8 +182,7 @@ def _response(rod, length, kind, values, swept, held, *, segments, mode, method,
         raise ValueError(f"{name}: method must be one of {METHODS}, got {method!r}")
     if isinstance(segments, bool) or not isinstance(segments, (int, np.integer)) or segments < 1:
         raise ValueError(f"{name}: segments must be an integer >= 1, got {segments!r}")
-    if jnp.shape(rod.twist(jnp.zeros(3))) != (3,):
-        raise ValueError(f"{name} takes one rod: jax.vmap over a batch of rods")
+    check_one_rod(rod, name)
     dtype = jnp.result_type(float)
     length = jnp.asarray(length, dtype)
     if length.shape != ():

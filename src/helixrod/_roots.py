@@ -352,10 +352,10 @@ def _angle(cos_phi, sin_phi):
     """phi in [0, 2 pi) from its cosine and sine: one division and a polynomial.
 
     The angle alpha in [0, pi/2] of (|cos|, |sin|) is j pi/4 plus the arctangent of
-    $t = \tan(\alpha - j\pi/4)$, $|t| \le \tan(\pi/8)$, with j the nearest multiple
-    (the rotated pair has the same ratio without its $\sqrt2$).  XLA's `arctan` on a CPU
-    cost about 10 ns a value (a quarter of `helix_equilibria`); this is vectorised
-    arithmetic only."""
+    $t = \\tan(\\alpha - j\\pi/4)$, $|t| \\le \\tan(\\pi/8)$, with j the nearest multiple
+    (the rotated pair has the same ratio without its $\\sqrt2$).  Arithmetic only: in place
+    of XLA's `arctan` it made `helix_equilibria` (phi, force, moment, stable) ~20% faster
+    on 2 CPU cores and ~2x on an H100 (measured, `benchmarks/`)."""
     ax, ay = jnp.abs(cos_phi), jnp.abs(sin_phi)
     low = ay <= _TAN_PI_8 * ax
     high = ax <= _TAN_PI_8 * ay

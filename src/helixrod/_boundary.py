@@ -23,8 +23,9 @@ shooting).  The wrench needs no junction condition: the geometric integrators ke
 force and the moment about a fixed point exactly (to round-off), so the wrench at the start
 of each piece is $(N, M_0 - (x_j - x_0)\\times N)$.  The pieces are integrated in parallel
 (`vmap`) and the flow of each piece depends, up to a rigid motion, only on its local start
-wrench: its $18\\times 6$ Jacobian is computed once per piece (custom JVP), so a Newton step
-costs about six integrations of the whole rod whatever $k$.
+wrench: its $18\\times 6$ Jacobian is computed once per piece (custom JVP), so a Jacobian
+costs about six integrations of the whole rod whatever $k$ (and most Newton steps need none:
+Broyden updates, `_TrustNewton`).
 
 Why multiple shooting.  Where the loaded rod is *spatially unstable* -- the linearised
 wrench flow has eigenvalues with real part $\\lambda > 0$, e.g. a helical spring pulled at
@@ -361,7 +362,7 @@ def _flows(wrench, theta, ode_tol, *, options):
 def _flows_jvp(primals, tangents, *, options):
     # The Jacobian with respect to the start wrench depends on primals only: computed once
     # per piece (six tangent integrations, all pieces in parallel) and reused by every
-    # tangent direction -- a Newton step of k pieces costs what one of single shooting does.
+    # tangent direction -- a Jacobian of k pieces costs what one of single shooting does.
     # It is integrated at the Jacobian tolerance `ode_tol[2:]` (`_jacobian_tolerance`: looser
     # inside Newton's iteration, where it only steers the steps; the ODE tolerance itself
     # for the derivatives of the solution, `_implicit`), the flows at `ode_tol[:2]`.
@@ -562,8 +563,8 @@ def _implicit(y, pieces, args, *, options):
     derivatives of the implicit function theorem: $\\dot y = -J^{-1}\\,\\partial_\\theta F\\,
     \\dot\\theta$ and $\\dot P = P_y\\dot y + \\partial_\\theta P\\,\\dot\\theta$, with the Jacobians
     $J = F_y$ and $P_y$ integrated at the ODE tolerance itself (the root solve steers with
-    looser ones) and one forward-mode pass through the flows for $\\partial_\\theta$.  (Not `optimistix.ImplicitAdjoint`: its
-    linear solve raises on a non-finite input, so one failed point would abort a
+    looser ones) and one forward-mode pass through the flows for $\\partial_\\theta$.  (Not
+    `optimistix.ImplicitAdjoint`: its linear solve raises on a non-finite input, so one failed point would abort a
     differentiated batch; here a failed point gets NaN derivatives.)"""
     return y, pieces
 

@@ -380,8 +380,7 @@ def _flows_jvp(primals, tangents, *, options):
     if t_wrench is not None:
         t_out = t_out + jnp.einsum("kij,ki->kj", jac, t_wrench)
     if t_theta is not None and jax.tree.leaves(t_theta):
-        diff, static = _tangent_part(theta, t_theta)[:2]
-        t_diff = _tangent_part(theta, t_theta)[2]
+        diff, static, t_diff = _tangent_part(theta, t_theta)
         flows = lambda d: _per_piece(lambda w: _flow_one(eqx.combine(d, static), w, options, ode_tol), wrench)  # noqa: E731
         t_out = t_out + jax.jvp(flows, (diff,), (t_diff,))[1]
     return out, t_out

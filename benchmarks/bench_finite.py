@@ -38,7 +38,6 @@ from scipy.integrate import solve_bvp  # noqa: E402
 
 import helixrod as hr  # noqa: E402
 from _timing import best_time  # noqa: E402
-from helixrod import _axial  # noqa: E402
 
 RESULTS = pathlib.Path(__file__).parent / "results"
 SPRING = hr.Rod(1.0, 1.0, 1 / 1.3, uhat=(0.0, 1.0, 0.3))
@@ -84,7 +83,7 @@ def scipy_bc(start, kind, P=None, R=None, F=None):
 
 def unloaded_guess(rod, length, mesh):
     s = np.linspace(0.0, length, mesh)
-    x, frame = (np.asarray(a) for a in _axial.unloaded_state(rod, jnp.asarray(s)))
+    x, frame = (np.asarray(a) for a in hr.unloaded_state(rod, jnp.asarray(s)))
     return s, np.concatenate([np.zeros((6, mesh)), frame.reshape(mesh, 9).T, x.T])
 
 
@@ -93,7 +92,7 @@ def unloaded_guess(rod, length, mesh):
 
 def clamped_problem():
     length = 3 * TURN
-    h0, theta0 = (float(a) for a in _axial.unloaded_observables(SPRING, length))
+    h0, theta0 = (float(a) for a in hr.unloaded_observables(SPRING, length))
     start, end = hr.axial_ends(SPRING, length, extension=1.1 * h0, rotation=theta0 + 0.5)
     return length, start, end
 
@@ -103,7 +102,7 @@ def bench_clamped(tols, scipy_tols, repeats):
     s = jnp.linspace(0.0, length, NSAVE)
 
     def run(tol):
-        sol = hr.solve_boundary_value(SPRING, length, start=start, end=end, saveat=s, rtol=tol, atol=tol, ode_rtol=tol, ode_atol=tol)
+        sol = hr.solve_boundary_value(SPRING, length, start=start, end=end, saveat=s, atol=tol, ode_rtol=tol, ode_atol=tol)
         return sol
 
     t0 = time.perf_counter()
@@ -151,11 +150,11 @@ def headline(rows):
 
 def bench_curve(count, tols, scipy_tols, repeats):
     length = 3 * TURN
-    _, theta0 = (float(a) for a in _axial.unloaded_observables(SPRING, length))
+    _, theta0 = (float(a) for a in hr.unloaded_observables(SPRING, length))
     forces = jnp.linspace(0.0, 0.05, count)
 
     def run(tol):
-        return hr.force_extension(SPRING, length, forces, rotation=theta0, rtol=tol, atol=tol, ode_rtol=tol, ode_atol=tol)
+        return hr.force_extension(SPRING, length, forces, rotation=theta0, atol=tol, ode_rtol=tol, ode_atol=tol)
 
     t0 = time.perf_counter()
     ref = jax.block_until_ready(run(1e-12))
@@ -264,7 +263,7 @@ def bench_adjoints(repeats):
 
 def growth_rate(rod, length, h_ratio):
     """`wrench_growth_rate` at the bulk helix with the same extension and (unturned) rotation."""
-    h0, theta0 = (float(a) for a in _axial.unloaded_observables(rod, length))
+    h0, theta0 = (float(a) for a in hr.unloaded_observables(rod, length))
     bulk = _axial.bulk_helix(rod, length, ("extension", "rotation"), jnp.array([h_ratio * h0, theta0]))
     return float(hr.wrench_growth_rate(rod, bulk.mu2 * bulk.u, rod.moment(bulk.u)))
 
@@ -275,7 +274,7 @@ def bench_shooting(turns_list, h_ratios, segment_choices):
         lam = growth_rate(SPRING, TURN, h_ratio)
         for turns in turns_list:
             length = turns * TURN
-            h0, theta0 = (float(a) for a in _axial.unloaded_observables(SPRING, length))
+            h0, theta0 = (float(a) for a in hr.unloaded_observables(SPRING, length))
             start, end = hr.axial_ends(SPRING, length, extension=h_ratio * h0, rotation=theta0)
             row = dict(h_ratio=h_ratio, turns=turns, length=length, lambda_=lam, lambda_L=lam * length)
             for k in segment_choices:

@@ -30,7 +30,6 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 import helixrod as hr  # noqa: E402
-from helixrod import _fit  # noqa: E402
 
 ROD = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
 TRUTH = np.array([1.0, 1.5, 0.8, 0.5, 0.5])
@@ -63,6 +62,20 @@ def numpy_wrench(K, kappa, tau):
     mu2 = m3 - mu1 * ta
     norm = np.sqrt(k * k + ta * ta)
     return mu2 * norm, mu1 * norm + mu2 * ta / norm, real
+
+
+def isotropic_start(data):
+    """The peer's start: the isotropic rod (K1 = K2 = B, K3 = C, uhat = 0) that fits the
+    data by weighted linear least squares -- Love's formulas F = |u| tau (C - B),
+    M = (B kappa^2 + C tau^2)/|u| are linear in B and C."""
+    k, t = np.asarray(data.kappa), np.asarray(data.tau)
+    norm = np.hypot(k, t)
+    sF, sM = np.asarray(data.force_sigma), np.asarray(data.moment_sigma)
+    A = np.concatenate([np.stack([-norm * t, norm * t], 1) / sF[:, None], np.stack([k * k / norm, t * t / norm], 1) / sM[:, None]])
+    b = np.concatenate([np.asarray(data.force) / sF, np.asarray(data.moment) / sM])
+    (B, C), *_ = np.linalg.lstsq(A, b, rcond=None)
+    floor = max(abs(B), abs(C), 1e-300) * 1e-2
+    return max(B, floor), max(C, floor)
 
 
 def to_K(z, ks):
@@ -133,7 +146,7 @@ def main():
         tau = rng.uniform(-1.5, 2.0, n)
         for noise in noises:
             data = hr.synthetic_helix_data(ROD, kappa, tau, noise, jax.random.key(n))
-            B, C = _fit._isotropic_init(data, (0.0, 0.0, 0.0))
+            B, C = isotropic_start(data)
             ks = B
             z0 = np.array([0.0, 0.0, np.log(C / ks), 0.0, 0.0])
             for label, kw in (("helixrod LM, 1 start", dict(n_starts=1)), ("helixrod LM, 32 starts", dict(n_starts=32))):
@@ -153,8 +166,8 @@ def main():
     kappa, tau = rng.uniform(0.3, 2.5, n), rng.uniform(-1.5, 2.0, n)
     data = hr.synthetic_helix_data(ROD, kappa, tau, 0.01, jax.random.key(1))
     for method, kw in (("gauss-newton", {}), ("lbfgs", dict(max_steps=500)), ("adam", dict(max_steps=2000, learning_rate=2e-2))):
-        first, fit = helixrod_fit(data, method=method, n_starts=1, **kw)
-        later = float(np.median([helixrod_fit(data, method=method, n_starts=1, **kw)[0] for _ in range(3)]))
+        first, fit = helixrod_fit(data, solver=method, n_starts=1, **kw)
+        later = float(np.median([helixrod_fit(data, solver=method, n_starts=1, **kw)[0] for _ in range(3)]))
         K = [float(fit.params[k]) for k in ("K1", "K2", "K3", "K13", "K23")]
         rows.append(dict(n=n, noise=0.01, solver=f"helixrod {method}", first_s=first, later_s=later, cost=float(fit.cost), err=param_error(K)))
         print(f"{n:6d} {0.01:6.3f} {'helixrod ' + method:>22} {first:9.3f} {later:9.4f} {fit.cost:12.6g} {rows[-1]['err']:11.3g}")

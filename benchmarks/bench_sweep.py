@@ -24,10 +24,10 @@ from pathlib import Path
 import jax
 
 jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import helixrod as hr  # noqa: E402
-from helixrod._sweep import FIELDS, _chunk_function, _equilibrium_point_fn, _padded  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _numpy_peer import numpy_helix_equilibria  # noqa: E402
@@ -38,7 +38,7 @@ ROD = hr.Rod(ROD_ARGS["K1"], ROD_ARGS["K2"], ROD_ARGS["K3"], ROD_ARGS["K13"], RO
 FIELD_SETS = {
     "count": ("count",),
     "wrench": ("force", "moment", "stable", "count"),
-    "all": FIELDS,
+    "all": hr.SweepResult.FIELDS,
 }
 RESULTS = Path(__file__).parent / "results"
 
@@ -49,36 +49,30 @@ def grid(n_points):
 
 
 def flops_per_point(fields):
-    """XLA cost-analysis flops of one compiled chunk, per point (the kernel's op count)."""
-    devices = tuple(jax.local_devices())
-    chunk = 65536 * len(devices)
-    k, t = grid(4 * chunk)
-    args = (ROD, _padded(k), _padded(t), np.int32(t.size), np.int32(k.size * t.size - 1), np.int32(0))
-    # On a CPU helix_equilibria loops over cache-sized pieces of a chunk, and XLA's cost
-    # analysis counts a loop body once: count a one-pass program instead (the same
-    # arithmetic), built outside the sweep's caches so the timed runs keep the loop.
-    from helixrod import _equilibria
+    """XLA cost-analysis flops (and transcendentals) per point of the program a sweep chunk
+    runs: `helix_equilibria` and the requested fields on one cache-sized batch of 32 768
+    points, which `helix_equilibria` runs in one pass (XLA's cost analysis would count the
+    body of its chunk loop only once on larger batches).  XLA counts every branch of the
+    register solver's robust fallback (taken by a few points per chunk at most), so this
+    overstates the work done on the usual path."""
+    n = 32_768
+    kappa = jnp.linspace(0.01, 3.0, n)
+    tau = jnp.linspace(-3.0, 3.0, n)
 
-    saved = _equilibria._CPU_CHUNK
-    _equilibria._CPU_CHUNK = 1 << 62
-    try:
-        fn = _chunk_function.__wrapped__(_equilibrium_point_fn.__wrapped__(fields), devices, chunk)
-        total = _cost(fn, *args)
-    finally:
-        _equilibria._CPU_CHUNK = saved
-    # XLA counts every branch of the register solver's robust fallback (64 bisections,
-    # taken by a few points per chunk at most), so `total` overstates the work done.  The
-    # kernel's op count on its usual path swaps the solver's cost for its fast path's.
-    fast = float("nan")
-    try:
-        from helixrod._roots import _solve, register_roots
+    def chunk(kappa, tau):
+        # The fields as `sweep` derives them from `helix_equilibria`.
+        eq = hr.helix_equilibria(ROD, kappa, tau)
+        out = {name: getattr(eq, name) for name in fields if name in hr.SweepResult.REGISTER_FIELDS}
+        out["count"] = jnp.sum(eq.valid, axis=-1, dtype=jnp.int8)
+        out["stable_count"] = jnp.sum(eq.stable, axis=-1, dtype=jnp.int8)
+        out["continuum"], out["straight"] = eq.continuum, eq.straight
+        best = jnp.argmin(jnp.where(eq.stable, eq.energy, jnp.inf), axis=-1)[..., None]
+        for name in ("phi", "force", "moment"):
+            out["stable_" + name] = jnp.take_along_axis(getattr(eq, name), best, axis=-1)[..., 0]
+        return {name: out[name] for name in fields}
 
-        A, B, C = (jax.numpy.linspace(0.1, 1.0, chunk) * s for s in (1.0, -0.7, 0.4))
-        fast = (total["flops"] - _cost(jax.jit(register_roots), A, B, C)["flops"]
-                + _cost(jax.jit(lambda A, B, C: _solve(A, B, C)), A, B, C)["flops"])
-    except (ImportError, TypeError, KeyError):
-        pass  # private solver layout changed: report the all-branch count only
-    return total["flops"] / chunk, fast / chunk, total.get("transcendentals", float("nan")) / chunk
+    cost = _cost(jax.jit(chunk), kappa, tau)
+    return cost["flops"] / n, cost.get("transcendentals", float("nan")) / n
 
 
 def _cost(fn, *args):
@@ -159,11 +153,10 @@ def main():
         start = time.perf_counter()
         hr.sweep(ROD, k, t, fields=fields, progress=False)  # compile + one chunk
         report["compile_s"][name] = time.perf_counter() - start
-        all_branches, fast, tpp = flops_per_point(fields)
-        report["flops_per_point"][name] = dict(flops=fast, flops_all_branches=all_branches, transcendentals=tpp)
+        flops, tpp = flops_per_point(fields)
+        report["flops_per_point"][name] = dict(flops=flops, transcendentals=tpp)
         print(f"[{name}] compile+first chunk {report['compile_s'][name]:.1f} s; XLA cost analysis per point: "
-              f"{fast:.0f} flops on the fast path ({all_branches:.0f} counting every fallback branch)"
-              f" + {tpp:.0f} transcendentals")
+              f"{flops:.0f} flops (counting every fallback branch) + {tpp:.0f} transcendentals")
     print(f"{'fields':>8} {'points':>11} {'time s':>9} {'points/s':>11} {'GFLOP/s':>8} {'% peak':>7} {'vs numpy':>9}")
     peer_rate = {}
     for n in peer_sizes:

@@ -46,7 +46,7 @@ def test_residual_zero_and_counts(rng):
         assert float(jnp.nanmax(jnp.abs(res))) < 1e-12 * float(scale)
         assert bool(jnp.all(eq.count >= 2))
         # m = mu1 u + mu2 e3 and the first integrals
-        m_rebuilt = eq.mu1[..., None] * eq.u + eq.mu2[..., None] * jnp.array([0.0, 0.0, 1.0])
+        m_rebuilt = np.asarray(eq.mu1)[..., None] * np.asarray(eq.u) + np.asarray(eq.mu2)[..., None] * np.array([0.0, 0.0, 1.0])
         np.testing.assert_allclose(np.asarray(eq.m)[eq.valid], np.asarray(m_rebuilt)[eq.valid], atol=1e-12)
         np.testing.assert_allclose(eq.I1, jnp.sum(eq.n**2, -1), rtol=1e-12)
         # stable is the sign of d2W/dphi2, which matches a finite difference of W(phi)

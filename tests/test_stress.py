@@ -611,7 +611,7 @@ def test_ode_thousand_turns():
     helix, D orthonormal to 1e-12, first integrals conserved to 1e-12 (relative)."""
     length = 1000 * 2 * np.pi / np.hypot(1.0, 0.5)
     frame, x, orth, drift, steps, result = _integrate_helix(README_ROD, 1.0, 0.5, 0, length)
-    assert result == diffrax.RESULTS.successful
+    assert result == hr.RESULTS.successful
     record("ODE: 1e3 turns, frame", frame, 1e-9)
     record("ODE: 1e3 turns, centreline / L", x / length, 1e-12)
     record("ODE: 1e3 turns, |D^T D - I|", orth, 1e-12)
@@ -624,7 +624,7 @@ def test_ode_ten_thousand_turns():
     centreline within 5e-12 L, D orthonormal to 1e-12, first integrals to 1e-12."""
     length = 10_000 * 2 * np.pi / np.hypot(1.0, 0.5)
     frame, x, orth, drift, steps, result = _integrate_helix(README_ROD, 1.0, 0.5, 0, length)
-    assert result == diffrax.RESULTS.successful
+    assert result == hr.RESULTS.successful
     record("ODE: 1e4 turns, frame", frame, 5e-8)
     record("ODE: 1e4 turns, centreline / L", x / length, 5e-12)
     record("ODE: 1e4 turns, |D^T D - I|", orth, 1e-12)
@@ -640,13 +640,13 @@ def test_ode_near_straight():
     worst = 0.0
     for kappa in (1e-3, 1e-6, 1e-9):
         frame, x, orth, drift, steps, result = _integrate_helix(rod_params, kappa, 1.0, 0, 100.0)
-        assert result == diffrax.RESULTS.successful
+        assert result == hr.RESULTS.successful
         worst = max(worst, frame, x / 100.0, orth)
     rod = hr.Rod(*rod_params[:5], uhat=rod_params[5:])
     tau, length = 2.0, 100.0
     m0 = rod.moment(jnp.array([0.0, 0.0, tau]))
     frame, x, drift, _, steps, result = _ode(rod, jnp.array([0.0, 0.0, 1.5]), m0, jnp.asarray(length), jnp.eye(3), jnp.zeros(3))
-    assert result == diffrax.RESULTS.successful
+    assert result == hr.RESULTS.successful
     exact_frame, _ = _exact_helix(0.0, tau, 0.0, length)  # R_z(tau L) @ helix_frame(0, tau, 0, 0)
     exact_frame = exact_frame @ np.asarray(hr.helix_frame(0.0, tau, 0.0, 0.0)).T
     worst = max(worst, np.max(np.abs(np.asarray(frame) - exact_frame)), np.max(np.abs(np.asarray(x) - [0, 0, length])) / length)
@@ -663,7 +663,7 @@ def test_ode_highly_twisted():
                               ((1.0, 1.5, 0.8, 0.0, 0.0, 0.0, 0.0, 0.3), 1000.0, 1)]:
         length = 10 * 2 * np.pi / np.hypot(1.0, tau)
         frame, x, orth, drift, steps, result = _integrate_helix(params, 1.0, tau, slot, length)
-        assert result == diffrax.RESULTS.successful, (params, tau, steps)
+        assert result == hr.RESULTS.successful, (params, tau, steps)
         worst = max(worst, frame, x / length)
         steps_max = max(steps_max, steps)
     record("ODE: highly twisted (tau = 1e2, 1e3), frame and x / L", worst, 1e-10)
@@ -680,11 +680,11 @@ def test_ode_nearly_singular_stiffness():
     worst = 0.0
     for S in (1e-2, 1e-4):
         frame, x, orth, drift, steps, result = _integrate_helix((1.0, 1.5, schur0 + S, 0.6, 0.5, 0.0, 0.0, 0.0), 1.0, 0.5, 1, length)
-        assert result == diffrax.RESULTS.successful, (S, steps)
+        assert result == hr.RESULTS.successful, (S, steps)
         worst = max(worst, frame, x / length)
     record("ODE: nearly singular K (S = 1e-2, 1e-4), frame and x / L", worst, 1e-10)
     *_, steps, result = _integrate_helix((1.0, 1.5, schur0 + 1e-8, 0.6, 0.5, 0.0, 0.0, 0.0), 1.0, 0.5, 1, length)
-    assert result == diffrax.RESULTS.max_steps_reached
+    assert result == hr.RESULTS.max_steps_reached
 
 
 # == fits ======================================================================================
@@ -710,7 +710,7 @@ def test_fit_nearly_unidentifiable():
     assert (np.asarray(hr.helix_equilibria(rod, kappa, tau).count) == 2).all()
     data = hr.synthetic_helix_data(rod, kappa, tau, 0.01, jax.random.key(1))
     fit = hr.fit_stiffness(data, uhat=(0.0, 0.5, 0.2), n_starts=STARTS)
-    assert fit.success and 0.3 < float(fit.chi2_reduced) < 3
+    assert fit.ok and 0.3 < float(fit.chi2_reduced) < 3
     k1_directions = [dict(w).get("K1", 0.0) for w in fit.identifiability.weak]
     assert max(np.abs(k1_directions), default=0.0) > 0.99
     record("fits: unidentifiable K1, reported stderr(K1) / K2", float(fit.stderr["K1"]) / 1.5, 10.0, at_least=True)
@@ -746,7 +746,7 @@ def test_fit_single_point():
     directions, and every standard error is infinite -- no false certainty, no exception."""
     data = hr.synthetic_helix_data(FIT_ROD, [0.8], [0.5], 0.0, jax.random.key(0))
     fit = hr.fit_stiffness(data, uhat=(1.0, 0.0, 0.0), n_starts=4)
-    assert fit.success and fit.identifiability.rank == 2
+    assert fit.ok and fit.identifiability.rank == 2
     assert fit.identifiability.weak_stderr.count(np.inf) == 3
     assert all(np.isinf(float(v)) for v in fit.stderr.values())
     record("fits: single point, cost", float(fit.cost), 1e-20)
@@ -774,7 +774,7 @@ def test_fit_all_points_on_a_branch_boundary():
     F, M = np.asarray(eq.force[:, 0]), np.asarray(eq.moment[:, 0])
     data = hr.HelixData(F, M, kappa, tau, 0.01 * np.sqrt(np.mean(F**2)), 0.01 * np.sqrt(np.mean(M**2)))
     fit = hr.fit_stiffness(data, uhat=(1.0, 0.0, 0.0), n_starts=STARTS)
-    assert fit.success and fit.identifiability.rank == 5
+    assert fit.ok and fit.identifiability.rank == 5
     assert all(np.isfinite(float(v)) for v in fit.stderr.values())
     # The package's noise-free accuracy (tests/test_fit.py): 1e-8 of the largest stiffness.
     record("fits: stable branch on the astroid, |fit - truth| / K2", np.max(np.abs(_fit_values(fit) - [1.0, 1.5, 0.8, 0.5, 0.5])) / 1.5, 1e-8)
@@ -803,7 +803,7 @@ def test_fit_observed_on_the_fold_register():
     F, M = np.array(F), np.array(M)
     data = hr.HelixData(F, M, kappa, tau, 0.01 * np.sqrt(np.mean(F**2)), 0.01 * np.sqrt(np.mean(M**2)))
     fit = hr.fit_stiffness(data, uhat=(1.0, 0.0, 0.0), n_starts=STARTS)
-    assert not fit.success and "did not report convergence" in fit.message
+    assert not fit.ok and "did not report convergence" in fit.message
     truth = np.array(params[:5])
     record("fits: fold register, |fit - truth| / truth", np.max(np.abs(_fit_values(fit) - truth) / truth), 0.1)
 

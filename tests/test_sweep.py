@@ -16,7 +16,8 @@ import pytest
 
 import helixrod as hr
 from helixrod import plot
-from helixrod._sweep import FIELDS, POINT_FIELDS, REGISTER_FIELDS
+
+FIELDS, POINT_FIELDS, REGISTER_FIELDS = hr.SweepResult.FIELDS, hr.SweepResult.POINT_FIELDS, hr.SweepResult.REGISTER_FIELDS
 
 ROD = hr.Rod(1.0, 1.7, 0.9, K13=0.3, K23=-0.2, uhat=(0.8, 0.3, 0.4))
 KAPPA = np.concatenate([[0.0], np.linspace(0.05, 3.0, 37)])

@@ -6,13 +6,48 @@ creating arrays (helixrod never changes global JAX configuration itself).
 
 import importlib.metadata
 
+from . import dna as dna, plot as plot
+from ._bvp import (
+    AbstractEnd as AbstractEnd,
+    BoundaryValueOptions as BoundaryValueOptions,
+    BoundaryValueSolution as BoundaryValueSolution,
+    BulkHelix as BulkHelix,
+    Clamped as Clamped,
+    EndCondition as EndCondition,
+    Loaded as Loaded,
+    ResponseCurve as ResponseCurve,
+    Tweezer as Tweezer,
+    axial_ends as axial_ends,
+    axial_response as axial_response,
+    bulk_helix as bulk_helix,
+    force_extension as force_extension,
+    rotation_response as rotation_response,
+    solve_boundary_value as solve_boundary_value,
+)
+from ._constitutive import StrainEnergyRod as StrainEnergyRod
+from ._datasets import SpringExample as SpringExample, load_spring_example as load_spring_example
 from ._equilibria import (
     HelixEquilibria as HelixEquilibria,
     helix_equilibria as helix_equilibria,
     helix_residual as helix_residual,
     pure_moment_family as pure_moment_family,
-    register_coefficients as register_coefficients,
     straight_family as straight_family,
+)
+from ._fit import (
+    Bootstrap as Bootstrap,
+    EndResponseData as EndResponseData,
+    ErrorAnalysis as ErrorAnalysis,
+    HelixData as HelixData,
+    Identifiability as Identifiability,
+    ShapeData as ShapeData,
+    StiffnessFit as StiffnessFit,
+    bootstrap as bootstrap,
+    error_analysis as error_analysis,
+    fit_stiffness as fit_stiffness,
+    fit_stiffness_linear as fit_stiffness_linear,
+    synthetic_end_response_data as synthetic_end_response_data,
+    synthetic_helix_data as synthetic_helix_data,
+    synthetic_shape_data as synthetic_shape_data,
 )
 from ._geometry import (
     curvature_torsion as curvature_torsion,
@@ -21,42 +56,27 @@ from ._geometry import (
     height_and_turns as height_and_turns,
     helix_angle as helix_angle,
     helix_centreline as helix_centreline,
+    helix_frame as helix_frame,
     pitch_angle as pitch_angle,
     radius_pitch as radius_pitch,
     to_polar as to_polar,
+    unloaded_observables as unloaded_observables,
+    unloaded_state as unloaded_state,
 )
-from ._constitutive import StrainEnergyRod as StrainEnergyRod
 from ._kirchhoff import (
     KirchhoffSolution as KirchhoffSolution,
     first_integrals as first_integrals,
-    helix_frame as helix_frame,
     helix_initial_conditions as helix_initial_conditions,
     lab_wrench as lab_wrench,
     solve_static as solve_static,
+    wrench_growth_rate as wrench_growth_rate,
 )
-from ._lie import (
-    BodyVelocityTerm as BodyVelocityTerm,
-    CommutatorFreeRK4 as CommutatorFreeRK4,
-    MuntheKaasRK as MuntheKaasRK,
-    RodState as RodState,
-    hat as hat,
-    se3_exp as se3_exp,
-    so3_exp as so3_exp,
-)
+from ._lie import CommutatorFreeRK4 as CommutatorFreeRK4, MuntheKaasRK as MuntheKaasRK, so3_exp as so3_exp
 from ._load import LoadedHelices as LoadedHelices, helices_under_load as helices_under_load
-from ._rod import Rod as Rod, section_scales as section_scales
-# -- inverse spring problem (issue 4) --
-from ._data import HelixData as HelixData, synthetic_helix_data as synthetic_helix_data
-from ._fit import (
-    Bootstrap as Bootstrap,
-    Identifiability as Identifiability,
-    StiffnessFit as StiffnessFit,
-    bootstrap as bootstrap,
-    fit_stiffness as fit_stiffness,
-    fit_stiffness_linear as fit_stiffness_linear,
-)
-# -- end issue 4 --
+from ._rod import PARAMETER_NAMES as PARAMETER_NAMES, Rod as Rod, section_scales as section_scales
 from ._roots import register_roots as register_roots
+from ._spring import effective_moduli as effective_moduli, spring_compliance as spring_compliance
+from ._status import RESULTS as RESULTS, SolverError as SolverError
 from ._sweep import (
     Sensitivity as Sensitivity,
     SweepResult as SweepResult,
@@ -65,36 +85,6 @@ from ._sweep import (
     sensitivity as sensitivity,
     sweep as sweep,
 )
-from . import plot as plot
-
-# -- finite rods (issue 8) --
-from ._boundary import (
-    AbstractEnd as AbstractEnd,
-    BoundaryValueSolution as BoundaryValueSolution,
-    Clamped as Clamped,
-    Loaded as Loaded,
-    Tweezer as Tweezer,
-    axial_ends as axial_ends,
-    solve_boundary_value as solve_boundary_value,
-    wrench_growth_rate as wrench_growth_rate,
-)
-from ._finite_data import (
-    EndResponseData as EndResponseData,
-    ShapeData as ShapeData,
-    synthetic_end_response_data as synthetic_end_response_data,
-    synthetic_shape_data as synthetic_shape_data,
-)
-from ._response import (
-    ResponseCurve as ResponseCurve,
-    force_extension as force_extension,
-    rotation_response as rotation_response,
-)
-# -- end issue 8 --
-
-# DNA tweezers and spring mechanics (issue 6)
-from . import dna as dna
-from ._datasets import SpringExample as SpringExample, load_spring_example as load_spring_example
-from ._spring import effective_moduli as effective_moduli, spring_compliance as spring_compliance
 
 try:
     __version__ = importlib.metadata.version("helixrod")

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._fit import HelixData
 from ._rod import Rod
 
 
@@ -70,8 +71,6 @@ class TweezerExample(eqx.Module):
         the correlation of `kappa`, `tau` propagated from the observables' noise.  In this
         synthetic set the force and torque are exact; their (small) sigmas here only keep
         the weights finite, so that the fit's errors come from the observables."""
-        from ._data import HelixData
-
         return HelixData(
             self.force,
             self.moment,

@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import math
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from ._geometry import curvature_torsion, height_and_turns
+from ._misc import is_concrete
 
 # -- units and constants (plain Python floats: no module-level jnp arrays) -------------
 BOLTZMANN_CONSTANT = 1.380649e-23
@@ -39,14 +39,10 @@ ROOM_TEMPERATURE = 298.15
 """Default temperature, kelvin (25 °C)."""
 
 
-def _is_concrete(*xs) -> bool:
-    return not any(isinstance(x, jax.core.Tracer) for x in xs)
-
-
 def _require(ok, message: str, *values):
     """Raise ValueError when concrete inputs break `ok`; traced inputs are not raised on
     (the caller returns NaN there, so one bad point in a batch spoils nothing else)."""
-    if _is_concrete(ok, *values):
+    if is_concrete(ok, *values):
         bad = ~np.asarray(ok)
         if bad.any():
             where = "" if bad.ndim == 0 else f" (at indices {np.argwhere(bad)[:5].tolist()})"
@@ -56,7 +52,7 @@ def _require(ok, message: str, *values):
 def kT(temperature: ArrayLike = ROOM_TEMPERATURE, unit: str = "pN nm") -> Array:
     """Thermal energy $k_B T$ at `temperature` (kelvin): in pN nm (default) or "J".
 
-    $k_B T$ = 4.114 pN nm at 298.15 K, 4.047 pN nm at 293.15 K.
+    $k_B T$ = 4.116 pN nm at 298.15 K, 4.047 pN nm at 293.15 K.
     """
     temperature = jnp.asarray(temperature, jnp.result_type(float))
     ok = jnp.isfinite(temperature) & (temperature > 0)

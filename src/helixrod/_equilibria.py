@@ -1,6 +1,6 @@
 """Uniform helical equilibria: every register of the helix of curvature kappa, torsion tau.
 
-Conventions (DESIGN.md): $u = (\\kappa\\sin\\varphi, \\kappa\\cos\\varphi, \\tau)$ in the director
+Conventions (docs/conventions.md): $u = (\\kappa\\sin\\varphi, \\kappa\\cos\\varphi, \\tau)$ in the director
 frame, $m = K(u - \\hat u)$, and a uniform helix is an equilibrium iff $n = \\mu_2 u$,
 $m = \\mu_1 u + \\mu_2 e_3$ (reference report, eqs. 70-79).  The register condition
 $h = m_1 u_2 - m_2 u_1 = \\kappa (A \\sin 2\\varphi + B \\sin\\varphi + C\\cos\\varphi)$ with
@@ -194,7 +194,8 @@ def _equilibria_flat(rod: Rod, kappa, tau) -> HelixEquilibria:
     t = tau[..., None]
     norm_u = jnp.hypot(kappa_safe, tau)[..., None]
     # The rod with an axis for the register slots, so that its laws broadcast over them.
-    slot_rod = jax.tree.map(lambda x: jnp.expand_dims(x, rod.K1.ndim), rod)
+    # (An unbatched rod's components are scalars and broadcast as they are.)
+    slot_rod = rod if rod.K1.ndim == 0 else jax.tree.map(lambda x: jnp.expand_dims(x, rod.K1.ndim), rod)
     u1, u2, u3 = k * sin_phi, k * cos_phi, jnp.broadcast_to(t, cos_phi.shape)
     uh = slot_rod.uhat
     v1, v2, v3 = u1 - uh[..., 0], u2 - uh[..., 1], u3 - uh[..., 2]
@@ -270,8 +271,9 @@ def straight_family(rod: Rod, tension: ArrayLike):
     """
     tension = jnp.asarray(tension, jnp.result_type(float))
     zero = jnp.zeros_like(tension)
-    u = jnp.zeros(tension.shape + (3,), tension.dtype) + jnp.zeros_like(rod.uhat)
-    n = jnp.stack([zero, zero, tension], axis=-1) + jnp.zeros_like(u)
+    shape = jnp.broadcast_shapes(tension.shape, rod.K1.shape) + (3,)
+    u = jnp.zeros(shape, tension.dtype)
+    n = jnp.broadcast_to(jnp.stack([zero, zero, tension], axis=-1), shape)
     return u, rod.moment(u), n
 
 
@@ -284,9 +286,12 @@ def pure_moment_family(rod: Rod, mu1: ArrayLike):
     values (the family passes through infinity there).
     """
     mu1 = jnp.asarray(mu1, jnp.result_type(float))
-    K = rod.K
-    shifted = K - mu1[..., None, None] * jnp.eye(3, dtype=K.dtype)
-    u = jnp.linalg.solve(shifted, (K @ rod.uhat[..., None]))[..., 0]
+    shape = jnp.broadcast_shapes(mu1.shape, rod.K1.shape)
+    K = jnp.broadcast_to(rod.K, shape + (3, 3))
+    uhat = jnp.broadcast_to(rod.uhat, shape + (3,))
+    eye = jnp.eye(3, dtype=K.dtype).reshape((1,) * len(shape) + (3, 3))
+    shifted = K - jnp.broadcast_to(mu1, shape)[..., None, None] * eye
+    u = jnp.linalg.solve(shifted, (K @ uhat[..., None]))[..., 0]
     m = rod.moment(u)
     return u, m, jnp.zeros_like(u)
 

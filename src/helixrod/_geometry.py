@@ -9,7 +9,10 @@ right-handed helix."""
 from __future__ import annotations
 
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike
+from jaxtyping import Array, ArrayLike, Float
+
+from ._lie import rotation_z
+from ._misc import float_dtype, safe_sqrt
 
 
 def radius_pitch(kappa: ArrayLike, tau: ArrayLike) -> tuple[Array, Array]:
@@ -92,3 +95,78 @@ def helix_centreline(kappa: ArrayLike, tau: ArrayLike, s: ArrayLike) -> Array:
     r, p = radius_pitch(kappa, tau)
     w = jnp.hypot(kappa, tau) * s
     return jnp.stack([r * jnp.cos(w), r * jnp.sin(w), p * w], axis=-1)
+
+
+def helix_frame(kappa: ArrayLike, tau: ArrayLike, phi: ArrayLike, s: ArrayLike) -> Float[Array, "... 3 3"]:
+    """Exact director frame of the uniform helix $u = (\\kappa\\sin\\varphi, \\kappa\\cos\\varphi, \\tau)$
+    placed as `helix_centreline` places it (axis $e_z$, $x(0) = (r, 0, 0)$).
+
+    $D(s) = R_z(|u| s)\\, D_0$ with $D_0$ the rotation taking the local axis $u/|u|$ to
+    $e_z$ and $e_3$ to the tangent $(0, \\kappa, \\tau)/|u|$; then $D' = D\\hat u$ and
+    $\\int_0^s D e_3 = $ `helix_centreline(kappa, tau, s) - helix_centreline(kappa, tau, 0)`.
+    Shapes broadcast; the result has trailing `(3, 3)`.
+    """
+    kappa, tau, phi, s = jnp.broadcast_arrays(*(jnp.asarray(a, jnp.result_type(float)) for a in (kappa, tau, phi, s)))
+    norm_u = jnp.hypot(kappa, tau)
+    zero, one = jnp.zeros_like(kappa), jnp.ones_like(kappa)
+    # Local orthonormal basis (e3, b2, b3) with b2 along the bending part of u ...
+    local = jnp.stack(
+        [
+            jnp.stack([zero, zero, one], -1),
+            jnp.stack([jnp.sin(phi), jnp.cos(phi), zero], -1),
+            jnp.stack([-jnp.cos(phi), jnp.sin(phi), zero], -1),
+        ],
+        -1,
+    )
+    # ... and its lab images: the tangent, the axis component normal to it, e_x.
+    lab = jnp.stack(
+        [
+            jnp.stack([zero, kappa / norm_u, tau / norm_u], -1),
+            jnp.stack([zero, -tau / norm_u, kappa / norm_u], -1),
+            jnp.stack([one, zero, zero], -1),
+        ],
+        -1,
+    )
+    frame0 = lab @ jnp.swapaxes(local, -1, -2)
+    return rotation_z(norm_u * s) @ frame0
+
+
+# -- the unloaded rod -----------------------------------------------------------------------
+
+
+def intrinsic_helix(rod):
+    """$(\\hat\\kappa, \\hat\\tau, \\hat\\varphi, |\\hat u|, |\\hat u| > 0)$ of the unloaded rod's helix
+    $u = \\hat u$, with finite derivatives at $\\hat\\kappa = 0$ and $\\hat u = 0$ ($\\hat\\tau$ is
+    replaced by 1 when $\\hat u = 0$, where it is unused)."""
+    uhat = jnp.asarray(rod.uhat)
+    k2 = uhat[0] ** 2 + uhat[1] ** 2
+    kappa = safe_sqrt(k2)
+    norm = safe_sqrt(k2 + uhat[2] ** 2)
+    curved = norm > 0
+    safe_tau = jnp.where(curved, uhat[2], 1.0)
+    bent = k2 > 0
+    phi = jnp.where(bent, jnp.arctan2(jnp.where(bent, uhat[0], 0.0), jnp.where(bent, uhat[1], 1.0)), 0.0)
+    return kappa, safe_tau, phi, norm, curved
+
+
+def unloaded_state(rod, s: ArrayLike) -> tuple[Array, Array]:
+    """Centreline point `(..., 3)` and frame `(..., 3, 3)` at arc length(s) `s` of the
+    unloaded rod in its *canonical placement*: its intrinsic helix placed as `helix_frame`
+    and `helix_centreline` place it (axis $e_z$ through the origin, $x(0) = (\\hat r, 0, 0)$);
+    a straight untwisted rod ($\\hat u = 0$) starts at the origin with the identity frame
+    (tangent $e_z$).  Exact; differentiable at $\\hat\\kappa = 0$ and $\\hat u = 0$."""
+    kappa, tau, phi, norm, curved = intrinsic_helix(rod)
+    s = jnp.asarray(s, float_dtype())
+    frame = helix_frame(kappa, tau, phi, s)
+    x = helix_centreline(kappa, tau, s)
+    straight_x = s[..., None] * jnp.array([0.0, 0.0, 1.0], s.dtype).reshape((1,) * s.ndim + (3,))
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=s.dtype), frame.shape)
+    return jnp.where(curved, x, straight_x), jnp.where(curved, frame, eye)
+
+
+def unloaded_observables(rod, length: ArrayLike) -> tuple[Array, Array]:
+    """Axial extension and end rotation of the unloaded rod of length $L$:
+    $(h_0, \\Theta_0) = (L\\hat\\tau/|\\hat u|, L|\\hat u|)$; $(L, 0)$ for $\\hat u = 0$."""
+    _, tau, _, norm, curved = intrinsic_helix(rod)
+    safe = jnp.where(curved, norm, 1.0)
+    return length * jnp.where(curved, tau / safe, 1.0), length * norm

@@ -21,8 +21,11 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._equilibria import HelixEquilibria
-from ._geometry import helix_centreline
+from ._geometry import helix_centreline, helix_frame
 from ._lie import BodyVelocityTerm, CommutatorFreeRK4, MuntheKaasRK, RodState, tangent
+from ._misc import float_dtype, increasing_within, is_concrete
+from ._rod import check_one_rod
+from ._status import RESULTS, promote, raise_if_failed
 
 
 _OUTPUTS = ("wrench", "frame", "centreline")
@@ -35,9 +38,10 @@ class KirchhoffSolution(eqx.Module):
     director frame; `frame` `(k, 3, 3)` (column $i$ is $d_{i+1}$ in lab coordinates) and
     `x` `(k, 3)` the centreline in lab coordinates, each `None` unless requested through
     `outputs`; `first_integrals` `(k, 3)` the values of $(I_1, I_2, H)$ and `drift` their
-    change since $s = 0$; `result` the `diffrax.RESULTS` code of the solve;
-    `valid_input` False where the input was rejected (only with `throw=False`; the fields
-    are NaN there); `num_steps` the number of accepted steps.
+    change since $s = 0$; `result` a `helixrod.RESULTS` code (the diffrax code of the solve,
+    or `invalid_input`), `ok` its success; `valid_input` False where the input was rejected
+    (only with `throw=False`; the fields are NaN there); `num_steps` the number of accepted
+    steps.
     """
 
     s: Float[Array, " k"]
@@ -48,14 +52,14 @@ class KirchhoffSolution(eqx.Module):
     x: Float[Array, "k 3"] | None
     first_integrals: Float[Array, "k 3"]
     drift: Float[Array, "k 3"]
-    result: diffrax.RESULTS
+    result: RESULTS
     valid_input: Bool[Array, ""]
     num_steps: Int[Array, ""]
 
     @property
     def ok(self) -> Bool[Array, ""]:
         """True where the input was valid and the solve succeeded."""
-        return self.valid_input & (self.result == diffrax.RESULTS.successful)
+        return self.result == RESULTS.successful
 
     def lab_wrench(self) -> tuple[Array, Array]:
         """Force and moment in lab coordinates, $(Dn, Dm)$; needs the frame."""
@@ -98,6 +102,18 @@ def _ambient_field(s, y: RodState, rod) -> RodState:
     return tangent(y, *_body_velocity(s, y, rod))
 
 
+def _wrench_jacobian(rod, wrench):
+    """The $6\\times 6$ Jacobian of the wrench equations $(n', m') = (-u\\times n,\\
+    -u\\times m - e_3\\times n)$, $u = u(m)$, at the local wrench `(6,)` = $(n, m)$."""
+
+    def wrench_rate(w):
+        state = RodState(w[:3], w[3:])
+        rate = tangent(state, *_body_velocity(0.0, state, rod))
+        return jnp.concatenate([rate.n, rate.m])
+
+    return jax.jacfwd(wrench_rate)(wrench)
+
+
 def _spectral_radius_bound(J, squarings: int = 5):
     """Upper bound $\\|J^{2^k}\\|_F^{1/2^k} \\ge \\rho(J)$ (Gelfand), within a few per cent of
     the spectral radius for $k = 5$ even when $J$ is far from normal; matrix products only
@@ -131,33 +147,12 @@ def _stability_step(rod, n0, m0):
     rods: $\\|J\\|_F/\\rho$ of 1.6e3 and 2.5e4 measured), where $2/\\|J\\|_F$ alone made
     `solve_static` run out of steps (`tests/test_stress.py`)."""
 
-    def wrench_rate(w):
-        state = RodState(w[:3], w[3:])
-        rate = tangent(state, *_body_velocity(0.0, state, rod))
-        return jnp.concatenate([rate.n, rate.m])
-
-    J = jax.jacfwd(wrench_rate)(jax.lax.stop_gradient(jnp.concatenate([n0, m0])))
+    J = _wrench_jacobian(rod, jax.lax.stop_gradient(jnp.concatenate([n0, m0])))
     norm = jnp.sqrt(jnp.sum(J * J))
     rho = _spectral_radius_bound(J)
     frobenius_step = jnp.where(norm > 0, 2.0 / jnp.where(norm > 0, norm, 1.0), jnp.inf)
     spectral_step = jnp.where(rho > 0, 0.5 / jnp.where(rho > 0, rho, 1.0), jnp.inf)
     return jnp.maximum(frobenius_step, spectral_step)
-
-
-def check_one_rod(rod, owner: str) -> None:
-    """Raise `ValueError` unless `rod` is a single rod (not a batch), read from the shape of
-    its `uhat` (or, for a law without one, of its inverse law; without running it)."""
-    uhat = getattr(rod, "uhat", None)
-    if uhat is not None:
-        shape = jnp.shape(uhat)
-    else:
-        shape = jax.eval_shape(rod.twist, jax.ShapeDtypeStruct((3,), jnp.result_type(float))).shape
-    if shape != (3,):
-        raise ValueError(f"{owner} takes one rod: jax.vmap over a batch of rods")
-
-
-def _is_concrete(*xs) -> bool:
-    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(xs))
 
 
 def _parse_outputs(outputs) -> tuple[bool, bool, bool]:
@@ -216,13 +211,15 @@ def solve_static(
       float32, which cannot meet tighter ones); `steps`: use that many equal steps
       instead (no error control; may be traced, then `max_steps` must cover it).
     - `max_steps`, `adjoint` (default `RecursiveCheckpointAdjoint`, reverse mode; use
-      `diffrax.ForwardMode()` for `jax.jacfwd`), `throw` as in `diffrax.diffeqsolve`.
+      `diffrax.ForwardMode()` for `jax.jacfwd`) as in `diffrax.diffeqsolve`.
+    - `throw`: raise on failure (`helixrod.SolverError` when called eagerly, an equinox
+      runtime error inside `jax.jit`); with `throw=False` read `result` and `ok`.
 
     **Errors.** Non-finite `n0`/`m0`, `length <= 0` or non-finite, and bad shapes raise
-    `ValueError` for concrete values.  Traced values raise an `equinox` runtime error when
-    `throw=True`; with `throw=False` a bad point is flagged (`valid_input=False`, fields
-    NaN) so that one bad point never spoils a `vmap`-ped batch.  Hitting `max_steps`
-    raises with `throw=True` and sets `result` otherwise.
+    `ValueError` for concrete values.  Traced bad values are flagged (`result =
+    RESULTS.invalid_input`, `valid_input=False`, fields NaN), which raises with
+    `throw=True`; with `throw=False` one bad point never spoils a `vmap`-ped batch.
+    Hitting `max_steps` raises with `throw=True` and sets `result` otherwise.
 
     **Batches.** `jax.vmap(solve_static, ...)` over initial conditions, lengths or rods.
     A vmapped adaptive solve runs in lockstep: every member takes as many steps as the
@@ -242,7 +239,7 @@ def solve_static(
     geometric = isinstance(solver, (CommutatorFreeRK4, MuntheKaasRK))
     check_one_rod(rod, "solve_static")
 
-    dtype = jnp.result_type(float)
+    dtype = float_dtype()
     default_tol = 1e-12 if dtype == jnp.float64 else 1e-6
     rtol = default_tol if rtol is None else rtol
     atol = default_tol if atol is None else atol
@@ -261,32 +258,22 @@ def solve_static(
 
     finite = jnp.all(jnp.isfinite(n0)) & jnp.all(jnp.isfinite(m0))
     good_length = jnp.isfinite(length) & (length > 0)
-    if _is_concrete(n0, m0) and not np.all(np.isfinite(np.concatenate([np.asarray(n0), np.asarray(m0)]))):
+    if is_concrete(n0, m0) and not np.all(np.isfinite(np.concatenate([np.asarray(n0), np.asarray(m0)]))):
         raise ValueError(f"solve_static: n0 and m0 must be finite, got n0={n0}, m0={m0}")
-    if _is_concrete(length) and not (np.isfinite(np.asarray(length)) and np.asarray(length) > 0):
+    if is_concrete(length) and not (np.isfinite(np.asarray(length)) and np.asarray(length) > 0):
         raise ValueError(f"solve_static: length must be finite and > 0, got {length}")
+    # Invalid traced input (under vmap): integrate a harmless problem, flag it, return NaN.
     valid = finite & good_length
-    if throw:
-        n0 = eqx.error_if(n0, ~finite, "solve_static: n0 and m0 must be finite")
-        length = eqx.error_if(length, ~good_length, "solve_static: length must be finite and > 0")
-    else:
-        n0 = jnp.where(valid, n0, 0.0)
-        m0 = jnp.where(valid, m0, 0.0)
-        length = jnp.where(valid, length, 1.0)
+    n0 = jnp.where(valid, n0, 0.0)
+    m0 = jnp.where(valid, m0, 0.0)
+    length = jnp.where(valid, length, 1.0)
 
     if saveat is None:
         ts = None
         save = diffrax.SaveAt(t1=True)
     else:
-        ts = jnp.asarray(saveat, dtype)
-        if ts.ndim != 1 or ts.shape[0] < 1:
-            raise ValueError(f"solve_static: saveat must be a 1-d array of arc lengths, got shape {ts.shape}")
-        if _is_concrete(ts, length):
-            tsn, ln = np.asarray(ts), float(np.asarray(length))
-            if np.any(np.diff(tsn) <= 0) or tsn[0] < 0 or tsn[-1] > ln:
-                raise ValueError(f"solve_static: saveat must increase strictly within [0, {ln}], got {tsn}")
-        if not throw:
-            ts = jnp.where(valid, ts, jnp.linspace(0.0, 1.0, ts.shape[0], dtype=dtype))
+        ts = increasing_within(saveat, length, "saveat", "solve_static")
+        ts = jnp.where(valid, ts, jnp.linspace(0.0, 1.0, ts.shape[0], dtype=dtype))
         save = diffrax.SaveAt(ts=ts)
 
     if steps is not None:
@@ -328,13 +315,13 @@ def solve_static(
         stepsize_controller=controller,
         max_steps=max_steps,
         adjoint=adjoint,
-        throw=throw,
+        throw=False,
     )
     ys = sol.ys
     nan_if_invalid = lambda a: jnp.where(valid, a, jnp.nan)  # noqa: E731
     n, m = nan_if_invalid(ys.n), nan_if_invalid(ys.m)
     integrals = first_integrals(rod, n, m)
-    return KirchhoffSolution(
+    solution = KirchhoffSolution(
         s=sol.ts,
         n=n,
         m=m,
@@ -342,53 +329,15 @@ def solve_static(
         frame=nan_if_invalid(ys.frame) if store_frame else None,
         x=nan_if_invalid(ys.x) if with_x else None,
         first_integrals=integrals,
-        drift=integrals - first_integrals(rod, n0, m0),
-        result=sol.result,
+        drift=integrals - first_integrals(rod, n0, m0)[None],
+        result=RESULTS.where(valid, promote(sol.result), RESULTS.invalid_input),
         valid_input=valid,
         num_steps=sol.stats["num_accepted_steps"],
     )
+    return raise_if_failed(solution, solution.result, "solve_static") if throw else solution
 
 
 # -- uniform helices ---------------------------------------------------------------------
-
-
-def helix_frame(kappa: ArrayLike, tau: ArrayLike, phi: ArrayLike, s: ArrayLike) -> Float[Array, "... 3 3"]:
-    """Exact director frame of the uniform helix $u = (\\kappa\\sin\\varphi, \\kappa\\cos\\varphi, \\tau)$
-    placed as `helix_centreline` places it (axis $e_z$, $x(0) = (r, 0, 0)$).
-
-    $D(s) = R_z(|u| s)\\, D_0$ with $D_0$ the rotation taking the local axis $u/|u|$ to
-    $e_z$ and $e_3$ to the tangent $(0, \\kappa, \\tau)/|u|$; then $D' = D\\hat u$ and
-    $\\int_0^s D e_3 = $ `helix_centreline(kappa, tau, s) - helix_centreline(kappa, tau, 0)`.
-    Shapes broadcast; the result has trailing `(3, 3)`.
-    """
-    kappa, tau, phi, s = jnp.broadcast_arrays(*(jnp.asarray(a, jnp.result_type(float)) for a in (kappa, tau, phi, s)))
-    norm_u = jnp.hypot(kappa, tau)
-    zero, one = jnp.zeros_like(kappa), jnp.ones_like(kappa)
-    # Local orthonormal basis (e3, b2, b3) with b2 along the bending part of u ...
-    local = jnp.stack(
-        [
-            jnp.stack([zero, zero, one], -1),
-            jnp.stack([jnp.sin(phi), jnp.cos(phi), zero], -1),
-            jnp.stack([-jnp.cos(phi), jnp.sin(phi), zero], -1),
-        ],
-        -1,
-    )
-    # ... and its lab images: the tangent, the axis component normal to it, e_x.
-    lab = jnp.stack(
-        [
-            jnp.stack([zero, kappa / norm_u, tau / norm_u], -1),
-            jnp.stack([zero, -tau / norm_u, kappa / norm_u], -1),
-            jnp.stack([one, zero, zero], -1),
-        ],
-        -1,
-    )
-    frame0 = lab @ jnp.swapaxes(local, -1, -2)
-    angle = norm_u * s
-    c, sn = jnp.cos(angle), jnp.sin(angle)
-    rz = jnp.stack(
-        [jnp.stack([c, -sn, zero], -1), jnp.stack([sn, c, zero], -1), jnp.stack([zero, zero, one], -1)], -2
-    )
-    return rz @ frame0
 
 
 def helix_initial_conditions(eq: HelixEquilibria) -> tuple[Array, Array, Array, Array]:
@@ -403,3 +352,22 @@ def helix_initial_conditions(eq: HelixEquilibria) -> tuple[Array, Array, Array, 
     tau = eq.u[..., 2]
 
     return eq.n, eq.m, helix_frame(kappa, tau, eq.phi, 0.0), helix_centreline(kappa, tau, 0.0)
+
+
+def wrench_growth_rate(rod, n: ArrayLike, m: ArrayLike) -> Array:
+    """Spatial growth rate $\\lambda$ of perturbations of a uniform helix: the largest real
+    part of the eigenvalues of the $6\\times 6$ Jacobian of the static Kirchhoff equations
+    $(n', m') = (-u\\times n,\\ -u\\times m - e_3\\times n)$, $u = u(m)$, at the constant local
+    wrench `(n, m)` (e.g. `helix_equilibria(...).n`, `.m`, or `bulk_helix`).
+
+    $\\lambda > 0$ (a spatially unstable helix) means that errors in a shooting guess grow like
+    $e^{\\lambda L}$: from the bulk guess single shooting was measured to converge up to
+    $\\lambda L \\approx 3$ and to fail beyond $\\approx 4$ (README), so use
+    `segments >= lambda * L / 3` in `solve_boundary_value`.  `n`, `m` `(..., 3)` broadcast;
+    uses `jnp.linalg.eigvals` (CPU).  Not differentiable.
+    """
+    n, m = jnp.broadcast_arrays(jnp.asarray(n, float_dtype()), jnp.asarray(m, float_dtype()))
+    wrench = jax.lax.stop_gradient(jnp.concatenate([n, m], -1)).reshape(-1, 6)
+    jac = jax.vmap(lambda w: _wrench_jacobian(rod, w))(wrench)
+    growth = jnp.max(jnp.real(jnp.linalg.eigvals(jac)), axis=-1)
+    return growth.reshape(n.shape[:-1])

@@ -16,7 +16,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 
 class RodState(eqx.Module):
@@ -37,7 +37,7 @@ class RodState(eqx.Module):
 def hat(w: Array) -> Array:
     """Skew matrix $\\hat w$ with $\\hat w v = w \\times v$: `w` of shape `(..., 3)` gives
     `(..., 3, 3)`.  Example: `hat(jnp.array([0., 0., 1.])) @ jnp.array([1., 0., 0.])` is
-    `(0, 1, 0)` ($e_3 \\times e_1 = e_2$).  Inverse of the private `vee`."""
+    `(0, 1, 0)` ($e_3 \\times e_1 = e_2$).  Inverse of `vee`."""
     w1, w2, w3 = w[..., 0], w[..., 1], w[..., 2]
     z = jnp.zeros_like(w1)
     return jnp.stack(
@@ -75,8 +75,46 @@ def so3_exp(w: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     below $|w| = 10^{-2}$ keeps values and gradients finite at $w = 0$."""
     a, b, _ = _exp_coefficients(jnp.sum(w * w, axis=-1))
     W = hat(w)
-    eye = jnp.eye(3, dtype=W.dtype)
+    eye = jnp.eye(3, dtype=W.dtype).reshape((1,) * (W.ndim - 2) + (3, 3))
     return eye + a[..., None, None] * W + b[..., None, None] * (W @ W)
+
+
+def gibbs(R: Array) -> Array:
+    """Gibbs vector $\\tan(\\theta/2)\\,a$ of the rotation `R` (by $\\theta$ about $a$): zero only
+    at the identity (no spurious root at $\\theta = \\pi$, unlike the rotation vector's
+    sine); large but finite near $\\theta = \\pi$.  `(..., 3, 3)` gives `(..., 3)`."""
+    den = 1.0 + jnp.trace(R, axis1=-2, axis2=-1)
+    safe = jnp.where(den > 1e-8, den, 1e-8)
+    return vee(R - jnp.swapaxes(R, -1, -2)) / safe[..., None]
+
+
+def rotation_vector(R: Array) -> Array:
+    """$\\theta a$ with $R = \\exp(\\theta\\hat a)$, $0 \\le \\theta < \\pi$ (inverse of `so3_exp`)."""
+    g = gibbs(R)
+    norm2 = jnp.sum(g * g, -1)
+    small = norm2 < 1e-24
+    norm = jnp.sqrt(jnp.where(small, 1.0, norm2))
+    factor = jnp.where(small, 2.0, 2.0 * jnp.arctan(norm) / norm)
+    return factor[..., None] * g
+
+
+def rotation_z(angle: ArrayLike) -> Array:
+    """Rotation by `angle` (radians) about $e_z$, shape `angle.shape + (3, 3)`."""
+    angle = jnp.asarray(angle)
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    z, o = jnp.zeros_like(c), jnp.ones_like(c)
+    return jnp.stack([jnp.stack([c, -s, z], -1), jnp.stack([s, c, z], -1), jnp.stack([z, z, o], -1)], -2)
+
+
+def twist_angle(R: Array) -> Array:
+    """Twist angle about $e_z$ of the rotation `R` in $(-\\pi, \\pi]$ (swing-twist split,
+    $2\\operatorname{atan2}(q_z, q_w)$ with $q$ the unit quaternion of `R`)."""
+    return 2.0 * jnp.arctan2(R[..., 1, 0] - R[..., 0, 1], 1.0 + jnp.trace(R, axis1=-2, axis2=-1))
+
+
+def unwrap_near(angle: ArrayLike, hint: ArrayLike) -> Array:
+    """`angle + 2 pi k` with the integer `k` that brings it nearest to `hint`."""
+    return angle + 2.0 * jnp.pi * jnp.round((hint - angle) / (2.0 * jnp.pi))
 
 
 def se3_exp(w: Float[Array, "3"], v: Float[Array, "3"]) -> tuple[Array, Array]:

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._equilibria import helix_equilibria
+from ._misc import newton_iterations
 from ._roots import NUM_SLOTS
 from ._rod import Rod
 
@@ -111,19 +112,13 @@ def _under_load(rod, F0, M0, box, grid, newton_steps, max_solutions, rtol):
             f, mo = _slot_wrench(rod, x[0], x[1], s)
             return jnp.stack([(f - F0) / scale_f, (mo - M0) / scale_m])
 
-        def step(_, x):
-            r = residual(x)
-            J = jax.jacfwd(residual)(x)
-            dx = jnp.linalg.solve(J, r)
-            ok = jnp.all(jnp.isfinite(dx))
-            x_new = x - jnp.where(ok, dx, 0.0)
+        def in_box(new, x):
             # Stay in the box (a step out of it keeps half the way to the wall).
-            x_new = jnp.stack(
-                [jnp.clip(x_new[0], 0.5 * x[0], kappa_max * 1.5), jnp.clip(x_new[1], tau_lo - (tau_hi - tau_lo), tau_hi + (tau_hi - tau_lo))]
+            return jnp.stack(
+                [jnp.clip(new[0], 0.5 * x[0], kappa_max * 1.5), jnp.clip(new[1], tau_lo - (tau_hi - tau_lo), tau_hi + (tau_hi - tau_lo))]
             )
-            return x_new
 
-        x = jax.lax.fori_loop(0, newton_steps, step, jnp.stack([k, t]))
+        x = newton_iterations(residual, jnp.stack([k, t]), newton_steps, project=in_box)
         r = residual(x)
         return x, jnp.max(jnp.abs(r)) <= rtol
 
@@ -132,7 +127,7 @@ def _under_load(rod, F0, M0, box, grid, newton_steps, max_solutions, rtol):
     good = used & ok & inside
     # Drop duplicates: the same slot at the same (kappa, tau) found from several cells.
     scale_x = jnp.array([kappa_max, tau_hi - tau_lo], dtype)
-    close = jnp.all(jnp.abs((x[:, None, :] - x[None, :, :]) / scale_x) < 1e-7, axis=-1)
+    close = jnp.all(jnp.abs((x[:, None, :] - x[None, :, :]) / scale_x[None, None, :]) < 1e-7, axis=-1)
     same = close & (slot[:, None] == slot[None, :]) & good[:, None] & good[None, :]
     earlier = jnp.tril(same, k=-1)
     good = good & ~jnp.any(earlier, axis=1)

@@ -67,7 +67,7 @@ def plot_hyperboloid(rod, path=None, *, u3_slice=1.5, radii=None, extent=3.0):
     return _finish(fig, path)
 
 
-# -- inverse spring problem (issue 4) ------------------------------------------------------
+# -- inverse spring problem ----------------------------------------------------------------
 def plot_fit(data, fit, path=None):
     """Observed against predicted axial force and moment of a `StiffnessFit` (error bars:
     the data's sigmas of F and M; the diagonal is a perfect fit), and the normalised
@@ -80,8 +80,8 @@ def plot_fit(data, fit, path=None):
     n = len(data)
     r = np.asarray(fit.residuals)
     for ax, obs, pred, sig, label, colour in (
-        (axes[0], data.force, fit.predicted_force, data.force_sigma, "axial force $F$", OKABE_ITO[0]),
-        (axes[1], data.moment, fit.predicted_moment, data.moment_sigma, "axial moment $M$", OKABE_ITO[1]),
+        (axes[0], data.force, fit.predicted["force"], data.force_sigma, "axial force $F$", OKABE_ITO[0]),
+        (axes[1], data.moment, fit.predicted["moment"], data.moment_sigma, "axial moment $M$", OKABE_ITO[1]),
     ):
         obs, pred, sig = np.asarray(obs), np.asarray(pred), np.asarray(sig)
         ax.errorbar(pred, obs, yerr=sig, fmt="o", ms=4, color=colour, ecolor="0.6", lw=1)
@@ -99,7 +99,47 @@ def plot_fit(data, fit, path=None):
     return _finish(fig, path)
 
 
-# -- the kappa-tau atlas (issue 5) --------------------------------------------------------
+# -- finite rods --------------------------------------------------------------------------
+_AXIAL_LABELS = {
+    "force": "axial force $F$",
+    "moment": "axial moment $M$",
+    "extension": "extension $h$",
+    "rotation": "end rotation $\\Theta$",
+}
+
+
+def plot_response(curve, path=None):
+    """A `ResponseCurve` of a finite rod against the bulk (uniform-helix) prediction: the
+    swept control (`curve.swept`) on $x$, one panel per responding observable on $y$
+    (those of `curve.controls` not prescribed, e.g. extension and moment for a
+    force-extension curve at fixed rotation), the finite rod as points, the bulk as a
+    dashed line; points that did not converge are missing (NaN).  The title gives $L$ and
+    the held control (`curve.held`).  `path=None` returns the matplotlib `Figure`;
+    otherwise writes it (PNG/PDF/SVG by suffix) and returns `path`."""
+    from ._bvp import AXIAL_CONTROLS, AXIAL_OBSERVABLES
+
+    responses = [AXIAL_OBSERVABLES[i] for i in AXIAL_CONTROLS[curve.controls].responses]
+    x = np.asarray(getattr(curve, curve.swept), dtype=float)
+    fig, axes = _figure(len(responses))
+    for ax, name in zip(axes, responses):
+        ax.plot(x, np.asarray(getattr(curve, name), dtype=float), "o-", ms=3, color=OKABE_ITO[0], label="finite rod")
+        ax.plot(x, np.asarray(getattr(curve, "bulk_" + name), dtype=float), "--", color=OKABE_ITO[1], label="uniform helix (bulk)")
+        ax.set_xlabel(_AXIAL_LABELS[curve.swept])
+        ax.set_ylabel(_AXIAL_LABELS[name])
+    axes[0].legend()
+    held = np.asarray(getattr(curve, curve.held), dtype=float)
+    lo, hi = np.nanmin(held), np.nanmax(held)
+    if np.isclose(lo, hi, rtol=1e-9, atol=1e-12):
+        held_text = f"{curve.held} held at {hi:.4g}"
+    else:
+        held_text = f"{curve.held} from {held[0]:.4g} to {held[-1]:.4g}"
+    failed = int(np.sum(~np.asarray(curve.ok)))
+    title = f"finite rod ($L = {float(curve.length):.4g}$) against the uniform helix, {held_text}"
+    fig.suptitle(title + (f" ({failed} points did not converge)" if failed else ""))
+    return _finish(fig, path)
+
+
+# -- the kappa-tau atlas ------------------------------------------------------------------
 # These figures use matplotlib's object-oriented API (`matplotlib.figure.Figure`), never
 # pyplot, so they neither need nor change a backend (safe in notebooks and threads).
 # Each takes `path=None`: with a path the figure is written (PNG/PDF/SVG by suffix) and

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -10,9 +11,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._misc import float_dtype, is_concrete
 
-def _is_concrete(*xs) -> bool:
-    return not any(isinstance(x, jax.core.Tracer) for x in xs)
+
+#: The parameters of a `Rod` as a flat vector (`rod_vector`, `rod_from_vector`, the fits).
+PARAMETER_NAMES = ("K1", "K2", "K3", "K13", "K23", "uhat1", "uhat2", "uhat3")
 
 
 def _positive_definite(K1, K2, K3, K13, K23, uhat):
@@ -21,7 +24,7 @@ def _positive_definite(K1, K2, K3, K13, K23, uhat):
     $K$ has a diagonal upper-left 2x2 block, so by the Schur complement it is positive
     definite iff $K_1 > 0$, $K_2 > 0$ and $K_3 - K_{13}^2/K_1 - K_{23}^2/K_2 > 0$.
     """
-    xp = np if _is_concrete(K1, K2, K3, K13, K23, uhat) else jnp
+    xp = np if is_concrete(K1, K2, K3, K13, K23, uhat) else jnp
     finite = (
         xp.isfinite(K1)
         & xp.isfinite(K2)
@@ -101,7 +104,7 @@ class Rod(eqx.Module):
             "Rod: stiffness must be finite and positive definite "
             "(K1 > 0, K2 > 0, K3 - K13**2/K1 - K23**2/K2 > 0) and uhat finite"
         )
-        if _is_concrete(K1, K2, K3, K13, K23, uhat):
+        if is_concrete(K1, K2, K3, K13, K23, uhat):
             bad = ~np.asarray(ok)
             if bad.any():
                 where = "" if bad.ndim == 0 else f" (bad entries at batch indices {np.argwhere(bad)[:5].tolist()})"
@@ -127,11 +130,15 @@ class Rod(eqx.Module):
         )
         return jnp.stack(rows, axis=-2)
 
+    def _strain(self, u):
+        # Component by component: the rod's batch and `u`'s broadcast without implicit
+        # rank promotion (the components of an unbatched rod are scalars).
+        u = jnp.asarray(u)
+        return tuple(u[..., i] - self.uhat[..., i] for i in range(3))
+
     def moment(self, u: ArrayLike) -> Float[Array, "... 3"]:
         """Contact moment $m = K(u - \\hat u)$ (local components); `u` has a trailing 3."""
-        u = jnp.asarray(u)
-        v = u - self.uhat
-        v1, v2, v3 = v[..., 0], v[..., 1], v[..., 2]
+        v1, v2, v3 = self._strain(u)
         return jnp.stack(
             [
                 self.K1 * v1 + self.K13 * v3,
@@ -143,8 +150,10 @@ class Rod(eqx.Module):
 
     def energy(self, u: ArrayLike) -> Float[Array, "..."]:
         """Strain energy density $W(u) = \\tfrac12 (u-\\hat u)^T K (u-\\hat u)$."""
-        u = jnp.asarray(u)
-        return 0.5 * jnp.sum((u - self.uhat) * self.moment(u), axis=-1)
+        v1, v2, v3 = self._strain(u)
+        return 0.5 * (
+            self.K1 * v1 * v1 + self.K2 * v2 * v2 + self.K3 * v3 * v3 + 2 * (self.K13 * v1 + self.K23 * v2) * v3
+        )
 
     def twist(self, m: ArrayLike) -> Float[Array, "... 3"]:
         """Inverse constitutive law: the twist vector $u = \\hat u + K^{-1} m$."""
@@ -155,7 +164,7 @@ class Rod(eqx.Module):
         v3 = (m3 - self.K13 * m1 / self.K1 - self.K23 * m2 / self.K2) / schur
         v1 = (m1 - self.K13 * v3) / self.K1
         v2 = (m2 - self.K23 * v3) / self.K2
-        return self.uhat + jnp.stack([v1, v2, v3], axis=-1)
+        return jnp.stack([self.uhat[..., 0] + v1, self.uhat[..., 1] + v2, self.uhat[..., 2] + v3], axis=-1)
 
     # -- equivalent forms ---------------------------------------------------------------
     def canonical(self) -> "Rod":
@@ -284,3 +293,38 @@ def section_scales(E: float, I1: float, area: float, density: float = 1.0) -> di
         "force": area * E,
         "moment": area * E * length,
     }
+
+
+def rod_vector(rod: Rod) -> Float[Array, "*batch 8"]:
+    """The parameters of `rod` in `PARAMETER_NAMES` order (K1, K2, K3, K13, K23, uhat)."""
+    stiffness = jnp.stack([rod.K1, rod.K2, rod.K3, rod.K13, rod.K23], axis=-1)
+    return jnp.concatenate([stiffness, rod.uhat], axis=-1)
+
+
+def rod_from_vector(p: ArrayLike, *, checked: bool = False) -> Rod:
+    """The `Rod` with parameters `p` (`PARAMETER_NAMES` order, shape `(8,)`).  By default
+    *without* the constructor's positive-definiteness check: for parameterisations that
+    guarantee it, where a check that raises inside an optimiser's trial step (or one member
+    of a batch) would abort all of them; `checked=True` runs it (e.g. for values read from
+    a file)."""
+    p = jnp.asarray(p, float_dtype())
+    if checked:
+        return Rod(p[0], p[1], p[2], p[3], p[4], p[5:8])
+    return jax.tree_util.tree_unflatten(_rod_treedef(), [p[0], p[1], p[2], p[3], p[4], p[5:8]])
+
+
+@functools.cache
+def _rod_treedef():
+    return jax.tree_util.tree_structure(Rod(1.0, 1.0, 1.0))
+
+
+def check_one_rod(rod, owner: str) -> None:
+    """Raise `ValueError` unless `rod` is a single rod (not a batch), read from the shape of
+    its `uhat` (or, for a law without one, of its inverse law; without running it)."""
+    uhat = getattr(rod, "uhat", None)
+    if uhat is not None:
+        shape = jnp.shape(uhat)
+    else:
+        shape = jax.eval_shape(rod.twist, jax.ShapeDtypeStruct((3,), float_dtype())).shape
+    if shape != (3,):
+        raise ValueError(f"{owner} takes one rod: jax.vmap over a batch of rods")

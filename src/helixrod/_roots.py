@@ -1,6 +1,6 @@
 """Every root of the register equation $A \\sin 2\\varphi + B \\sin\\varphi + C \\cos\\varphi = 0$.
 
-The register condition of a uniform helix (DESIGN.md) is $h = \\kappa f(\\varphi)$ with
+The register condition of a uniform helix (docs/conventions.md) is $h = \\kappa f(\\varphi)$ with
 
 $$f(\\varphi) = A \\sin 2\\varphi + B \\sin\\varphi + C\\cos\\varphi = \\frac{1}{\\kappa}
 \\frac{dW}{d\\varphi},$$
@@ -88,9 +88,10 @@ _SWAP = (False, True, False, True)
 _SIGN_U = (1.0, 1.0, -1.0, -1.0)
 
 
-def _slot(values):
-    """A constant per-slot vector (trailing axis of 4)."""
-    return jnp.asarray(values)
+def _slot(values, batch_ndim: int):
+    """A constant per-slot vector (trailing axis of 4) of the rank of the per-slot arrays
+    of a batch of `batch_ndim` dimensions (no implicit rank promotion)."""
+    return jnp.reshape(jnp.asarray(values), (1,) * batch_ndim + (4,))
 
 
 def _converged(nu, last, before, order):
@@ -114,9 +115,9 @@ def _secular_solve(nu, aa, b2, c2, inner_sign, needed, careful):
     expand = lambda x: x[..., None]  # noqa: E731
 
     def coefficients():
-        Q2 = jnp.where(_slot(_Q_IS_B), expand(b2), expand(c2))
-        P2 = jnp.where(_slot(_Q_IS_B), expand(c2), expand(b2))
-        e = jnp.where(_slot(_INNER), expand(inner_sign), 1.0)
+        Q2 = jnp.where(_slot(_Q_IS_B, b2.ndim), expand(b2), expand(c2))
+        P2 = jnp.where(_slot(_Q_IS_B, b2.ndim), expand(c2), expand(b2))
+        e = jnp.where(_slot(_INNER, b2.ndim), expand(inner_sign), 1.0)
         return Q2, P2, e
 
     def newton(nu):
@@ -229,10 +230,10 @@ def _solve(A, B, C, careful=False):
         decided = jnp.abs(astroid) > _TANGENT_TOL
         tangent_point = jnp.zeros_like(pair)
 
-    Q = jnp.where(_slot(_Q_IS_B), b_it[..., None], c_it[..., None])
-    P = jnp.where(_slot(_Q_IS_B), c_it[..., None], b_it[..., None])
+    Q = jnp.where(_slot(_Q_IS_B, a.ndim), b_it[..., None], c_it[..., None])
+    P = jnp.where(_slot(_Q_IS_B, a.ndim), c_it[..., None], b_it[..., None])
     inner_sign = jnp.where(pair, -1.0, 1.0)
-    e = jnp.where(_slot(_INNER), inner_sign[..., None], 1.0)
+    e = jnp.where(_slot(_INNER, a.ndim), inner_sign[..., None], 1.0)
     aa = 2 * a[..., None]
     # Starts left of every root.  Outer branches: |Q|, and sqrt(b^2 + c^2) - 2a (here with
     # a lower bound of the square root).  Inner: at the root P^2/(2a - nu)^2 exceeds its
@@ -241,17 +242,17 @@ def _solve(A, B, C, careful=False):
     r_low = jnp.maximum(jnp.abs(b_it), jnp.abs(c_it)) + 0.41421356 * jnp.minimum(jnp.abs(b_it), jnp.abs(c_it))
     inner_room = 1 - P * P / jnp.square(jnp.where(e > 0, 1.0, aa - absQ))
     nu0 = jnp.where(e > 0, jnp.maximum(absQ, r_low[..., None] - aa), absQ / jnp.sqrt(jnp.maximum(inner_room, 1e-300)))
-    needed = ~(_slot(_INNER) & ~pair[..., None])
+    needed = ~(_slot(_INNER, a.ndim) & ~pair[..., None])
     nu, done = _secular_solve(nu0, 2 * a, b2, c2, inner_sign, needed, careful)
     converged = (jnp.all(done | ~needed, axis=-1) & decided) | factorable | continuum
 
     # The register from nu: (x, y) from Q/nu and P/d, one division for both.
     d = aa + e * nu
     inv = 1 / (nu * d)
-    U = _slot(_SIGN_U) * Q * d * inv
+    U = _slot(_SIGN_U, a.ndim) * Q * d * inv
     V = -P * nu * inv
-    x, y = _unit(jnp.where(_slot(_SWAP), V, U), jnp.where(_slot(_SWAP), U, V))
-    tangent = _slot((False, False, True, False)) & tangent_point[..., None]
+    x, y = _unit(jnp.where(_slot(_SWAP, a.ndim), V, U), jnp.where(_slot(_SWAP, a.ndim), U, V))
+    tangent = _slot((False, False, True, False), a.ndim) & tangent_point[..., None]
     if careful:
         # A tangent register (slot 2) is the separator, direction -(cbrt b, cbrt c).
         tx, ty = -cb[..., None], -cc[..., None]
@@ -397,7 +398,7 @@ def _factorable(a, b, c, sign_b, sign_c):
     rb, rc = sign_b * r, sign_c * r
     # Slot by slot with selects (elementwise, so XLA fuses them; stacking per-point arrays
     # would materialise four more arrays).
-    slot = jnp.arange(NUM_SLOTS)
+    slot = jnp.reshape(jnp.arange(NUM_SLOTS), (1,) * a.ndim + (NUM_SLOTS,))
 
     def by_slot(s0, s1, s2, s3):
         return jnp.where(slot == 0, s0, jnp.where(slot == 1, s1, jnp.where(slot == 2, s2, s3)))

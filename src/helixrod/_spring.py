@@ -32,6 +32,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._equilibria import helix_equilibria
 from ._geometry import height_and_turns
+from ._misc import is_concrete
 from ._rod import Rod
 
 # A register is recognised when the phi of `u` matches a root to this angle (radians).
@@ -91,10 +92,6 @@ def _broadcast_rod(rod: Rod, batch, size):
     return jax.tree_util.tree_map(grow, rod)
 
 
-def _is_concrete(tree) -> bool:
-    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
-
-
 def _batched_compliance(rod: Rod, u, length):
     dtype = jnp.result_type(float)
     u = jnp.asarray(u, dtype)
@@ -111,7 +108,7 @@ def _batched_compliance(rod: Rod, u, length):
     if count == 0:
         return jnp.zeros(batch + (2, 2), dtype), jnp.zeros(batch, bool), u
     # Pad eager calls to a bucket size (rows repeat the first point); traced calls inline.
-    size = _padded_size(count) if _is_concrete((rod, u, length)) else count
+    size = _padded_size(count) if is_concrete(rod, u, length) else count
 
     def pad(x, tail):
         flat = jnp.broadcast_to(x, batch + tail).reshape((-1,) + tail)

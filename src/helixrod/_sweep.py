@@ -21,7 +21,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._equilibria import helix_equilibria
-from ._rod import Rod
+from ._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
 
 #: Per-register fields (shape ``(len(kappa), len(tau), 4)``), with their numpy dtypes.
 REGISTER_FIELDS = {
@@ -215,7 +215,13 @@ class SweepResult(collections.abc.Mapping):
     """The result of `sweep`: a read-only mapping of field name to numpy array, plus the
     `rod`, the grid axes `kappa` and `tau`, and `fields` (the names, in order).
     Per-register fields have shape `(len(kappa), len(tau), 4)`, per-point fields
-    `(len(kappa), len(tau))`; `result["force"][i, j]` belongs to `(kappa[i], tau[j])`."""
+    `(len(kappa), len(tau))`; `result["force"][i, j]` belongs to `(kappa[i], tau[j])`.
+    The fields a sweep can return: `SweepResult.REGISTER_FIELDS`, `SweepResult.POINT_FIELDS`
+    (name -> numpy dtype) and all of them, `SweepResult.FIELDS`."""
+
+    REGISTER_FIELDS = REGISTER_FIELDS
+    POINT_FIELDS = POINT_FIELDS
+    FIELDS = FIELDS
 
     def __init__(self, rod: Rod, kappa: np.ndarray, tau: np.ndarray, arrays: Mapping[str, np.ndarray]):
         self.rod = rod
@@ -326,20 +332,13 @@ def _equilibrium_point_fn(fields: tuple[str, ...]) -> Callable:
 
 # -- save / load --------------------------------------------------------------------------
 
-_ROD_KEYS = ("K1", "K2", "K3", "K13", "K23", "uhat1", "uhat2", "uhat3")
-
-
-def _rod_vector(rod: Rod) -> np.ndarray:
-    return np.concatenate([np.asarray([rod.K1, rod.K2, rod.K3, rod.K13, rod.K23], np.float64), np.asarray(rod.uhat)])
-
-
 def save_sweep(path, result: SweepResult) -> None:
     """Write a `SweepResult` to an `.npz` file: every field under `field/<name>`, the grid
     axes `kappa`, `tau`, the rod as `rod` = (K1, K2, K3, K13, K23, uhat1, uhat2, uhat3),
     and a JSON `meta` string (format version, field names, rod keys).  No pickles."""
-    meta = {"format": "helixrod.sweep", "version": 1, "fields": list(result.fields), "rod_keys": list(_ROD_KEYS)}
+    meta = {"format": "helixrod.sweep", "version": 1, "fields": list(result.fields), "rod_keys": list(PARAMETER_NAMES)}
     arrays = {f"field/{name}": result[name] for name in result.fields}
-    np.savez(path, kappa=result.kappa, tau=result.tau, rod=_rod_vector(result.rod), meta=np.asarray(json.dumps(meta)), **arrays)
+    np.savez(path, kappa=result.kappa, tau=result.tau, rod=np.asarray(rod_vector(result.rod), np.float64), meta=np.asarray(json.dumps(meta)), **arrays)
 
 
 def load_sweep(path) -> SweepResult:
@@ -351,7 +350,7 @@ def load_sweep(path) -> SweepResult:
         if meta.get("format") != "helixrod.sweep":
             raise ValueError(f"load_sweep: {path} is not a helixrod sweep file")
         p = data["rod"]
-        rod = Rod(p[0], p[1], p[2], p[3], p[4], p[5:8])
+        rod = rod_from_vector(p, checked=True)
         arrays = {name: data[f"field/{name}"] for name in meta["fields"]}
         return SweepResult(rod, data["kappa"], data["tau"], arrays)
 
@@ -359,7 +358,7 @@ def load_sweep(path) -> SweepResult:
 # -- sensitivities ------------------------------------------------------------------------
 
 #: Parameters `sensitivity` can differentiate with respect to ("uhat" = all three).
-PARAMETERS = _ROD_KEYS
+PARAMETERS = PARAMETER_NAMES
 
 
 def _check_wrt(wrt) -> tuple[str, ...]:
@@ -369,10 +368,10 @@ def _check_wrt(wrt) -> tuple[str, ...]:
     for w in wrt:
         if w == "uhat":
             names += ["uhat1", "uhat2", "uhat3"]
-        elif w in _ROD_KEYS:
+        elif w in PARAMETER_NAMES:
             names.append(w)
         else:
-            raise ValueError(f"sensitivity: unknown parameter {w!r}; valid are {list(_ROD_KEYS)} and 'uhat'")
+            raise ValueError(f"sensitivity: unknown parameter {w!r}; valid are {list(PARAMETER_NAMES)} and 'uhat'")
     if not names:
         raise ValueError("sensitivity: wrt is empty")
     return tuple(dict.fromkeys(names))
@@ -380,17 +379,18 @@ def _check_wrt(wrt) -> tuple[str, ...]:
 
 def _sensitivity_fields(rod: Rod, kappa, tau, wrt: tuple[str, ...]) -> dict:
     base = jnp.concatenate([jnp.stack([rod.K1, rod.K2, rod.K3, rod.K13, rod.K23]), rod.uhat])
-    which = jnp.asarray([_ROD_KEYS.index(w) for w in wrt])
+    which = jnp.asarray([PARAMETER_NAMES.index(w) for w in wrt])
 
     def quantities(theta):
         p = base.at[which].set(theta)
-        eq = helix_equilibria(Rod(p[0], p[1], p[2], p[3], p[4], p[5:8]), kappa, tau)
+        eq = helix_equilibria(rod_from_vector(p), kappa, tau)
         return eq.force, eq.moment, eq.phi
 
     theta = base[which]
     (force, moment, phi), (d_force, d_moment, d_phi) = _value_and_jacfwd(quantities, theta)
     valid = jnp.isfinite(phi)[..., None]
     d_force, d_moment, d_phi = (jnp.where(valid, d, jnp.nan) for d in (d_force, d_moment, d_phi))
+    theta = theta.reshape((1,) * force.ndim + theta.shape)
     return {
         "force": force,
         "moment": moment,

@@ -1,7 +1,7 @@
 """Observations of helices under an axial wrench: `HelixData`, its CSV form, and
 `synthetic_helix_data`.
 
-Conventions (DESIGN.md): `force` is $F = n\\cdot a$ and `moment` is $M = m\\cdot a$ along the
+Conventions (docs/conventions.md): `force` is $F = n\\cdot a$ and `moment` is $M = m\\cdot a$ along the
 helix axis $a = u/|u|$, $u = (\\kappa\\sin\\varphi, \\kappa\\cos\\varphi, \\tau)$.  Because
 $a\\cdot d_3 = \\tau/|u|$, the axis points the way the helix advances only for $\\tau > 0$:
 for a left-handed helix ($\\tau < 0$) a pull is $F < 0$.  Data measured along the direction of
@@ -9,7 +9,7 @@ advance (pull positive whatever the handedness) must be multiplied by
 $\\operatorname{sign}\\tau$ first; `HelixData(..., convention="advance")` does it.
 Neither $F$ nor $M$ depends on the choice of the director frame (they are scalars along
 the axis), so the data carry no sign convention beyond this one; the register $\\varphi$ does
-(it is measured from $d_2$ towards $d_1$, DESIGN.md), which is why an observed register
+(it is measured from $d_2$ towards $d_1$, docs/conventions.md), which is why an observed register
 breaks the frame symmetries of the fit.
 """
 
@@ -26,8 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._equilibria import helix_equilibria
-from ._rod import Rod
+from .._equilibria import helix_equilibria
+from .._rod import Rod
 
 #: Column order of the CSV form; the first four are required.
 CSV_COLUMNS = (
@@ -63,7 +63,7 @@ class HelixData(eqx.Module):
     and the fitted stiffnesses in [F L^2].
 
     `convention`: `"axis"` (default) -- `force`, `moment` are along $a = u/|u|$ as in
-    DESIGN.md; `"advance"` -- they were measured along the direction in which the helix
+    docs/conventions.md; `"advance"` -- they were measured along the direction in which the helix
     advances (pull positive for either handedness), and are multiplied by
     $\\operatorname{sign}\\tau$ here.
 
@@ -278,7 +278,7 @@ class HelixData(eqx.Module):
         `path` when given."""
         names = [n for n in CSV_COLUMNS if getattr(self, n) is not None]
         out = io.StringIO()
-        out.write("# helixrod HelixData: F = n.a and M = m.a along the helix axis a = u/|u| (DESIGN.md)\n")
+        out.write("# helixrod HelixData: F = n.a and M = m.a along the helix axis a = u/|u| (docs/conventions.md)\n")
         if comment:
             for line in comment.splitlines():
                 out.write(f"# {line}\n")

@@ -11,49 +11,24 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._boundary import _CLAMPED, _LOADED, _TWEEZER, AbstractEnd, Clamped, _EndData, _Options, solve_boundary_value
-from ._lie import CommutatorFreeRK4
-from ._response import _curve
-
-OBSERVABLES = ("force", "moment", "extension", "rotation")
-#: Controlled pair -> (end kind, indices of the controls, indices of the responses) in OBSERVABLES.
-CONTROLS = {
-    "force-moment": (_LOADED, (0, 1), (2, 3)),
-    "force-rotation": (_TWEEZER, (0, 3), (2, 1)),
-    "extension-rotation": (_CLAMPED, (2, 3), (0, 1)),
-}
-
-
-def _column(x, name, owner, n=None):
-    a = np.asarray(x, dtype=float)
-    if n is not None and a.ndim == 0:
-        a = np.full(n, float(a))
-    if a.ndim != 1 or (n is not None and a.shape != (n,)):
-        raise ValueError(f"{owner}: {name} must be one-dimensional{'' if n is None else f' of length {n}'}, got shape {a.shape}")
-    bad = np.flatnonzero(~np.isfinite(a))
-    if bad.size:
-        raise ValueError(f"{owner}: {name} has non-finite values in rows {bad[:20].tolist()}")
-    return a
-
-
-def _positive_scalar(x, name, owner):
-    v = float(np.asarray(x, dtype=float))
-    if not (np.isfinite(v) and v > 0):
-        raise ValueError(f"{owner}: {name} must be finite and > 0, got {v}")
-    return v
-
-
-def _segments(segments, owner):
-    if isinstance(segments, bool) or not isinstance(segments, (int, np.integer)) or segments < 1:
-        raise ValueError(f"{owner}: segments must be an integer >= 1, got {segments!r}")
-    return int(segments)
+from .._bvp import (
+    AXIAL_CONTROLS,
+    AXIAL_OBSERVABLES,
+    AbstractEnd,
+    BoundaryValueOptions,
+    Clamped,
+    EndCondition,
+    axial_response,
+    solve_boundary_value,
+    stack_ends,
+)
+from .._misc import check_integer, column, finite_scalar, float_dtype
 
 
 class EndResponseData(eqx.Module):
@@ -101,32 +76,31 @@ class EndResponseData(eqx.Module):
         segments: int = 1,
     ):
         owner = "EndResponseData"
-        if controls not in CONTROLS:
-            raise ValueError(f"{owner}: controls must be one of {tuple(CONTROLS)}, got {controls!r}")
-        length = _positive_scalar(length, "length", owner)
-        columns = {n: _column(v, n, owner) for n, v in zip(OBSERVABLES, (force, moment, extension, rotation))}
+        if controls not in AXIAL_CONTROLS:
+            raise ValueError(f"{owner}: controls must be one of {tuple(AXIAL_CONTROLS)}, got {controls!r}")
+        length = float(finite_scalar(length, "length", owner, positive=True))
+        columns = {n: column(v, n, owner) for n, v in zip(AXIAL_OBSERVABLES, (force, moment, extension, rotation))}
         sizes = {n: c.shape[0] for n, c in columns.items()}
         if len(set(sizes.values())) != 1 or 0 in sizes.values():
             raise ValueError(f"{owner}: columns must have one common, non-zero length, got {sizes}")
         n = sizes["force"]
-        sigmas = dict(zip(OBSERVABLES, (force_sigma, moment_sigma, extension_sigma, rotation_sigma)))
-        _, _, responses = CONTROLS[controls]
+        sigmas = dict(zip(AXIAL_OBSERVABLES, (force_sigma, moment_sigma, extension_sigma, rotation_sigma)))
         sigma = []
-        for i in responses:
-            name = OBSERVABLES[i]
+        for i in AXIAL_CONTROLS[controls].responses:
+            name = AXIAL_OBSERVABLES[i]
             if sigmas[name] is None:
                 raise ValueError(f"{owner}: {name} is measured with controls={controls!r}: give {name}_sigma")
-            col = _column(sigmas[name], f"{name}_sigma", owner, n)
+            col = column(sigmas[name], f"{name}_sigma", owner, n)
             if np.any(col <= 0):
                 raise ValueError(f"{owner}: {name}_sigma must be > 0; rows {np.flatnonzero(col <= 0)[:20].tolist()} are not")
             sigma.append(col)
-        dtype = jnp.result_type(float)
+        dtype = float_dtype()
         self.length = jnp.asarray(length, dtype)
-        for name in OBSERVABLES:
+        for name in AXIAL_OBSERVABLES:
             setattr(self, name, jnp.asarray(columns[name], dtype))
         self.sigma = jnp.asarray(np.stack(sigma, 1), dtype)
         self.controls = controls
-        self.segments = _segments(segments, owner)
+        self.segments = check_integer(segments, "segments", owner)
 
     def __len__(self) -> int:
         return int(self.force.shape[0])
@@ -139,15 +113,14 @@ class EndResponseData(eqx.Module):
     @property
     def responses(self) -> tuple[str, str]:
         """Names of the two measured columns."""
-        return tuple(OBSERVABLES[i] for i in CONTROLS[self.controls][2])
+        return tuple(AXIAL_OBSERVABLES[i] for i in AXIAL_CONTROLS[self.controls].responses)
 
 
-def _stack_ends(end) -> _EndData:
+def _stack_ends(end) -> EndCondition:
     ends = [end] if isinstance(end, AbstractEnd) else list(end)
     if not ends or not all(isinstance(e, AbstractEnd) for e in ends):
         raise ValueError("ShapeData: end must be a Clamped, Loaded or Tweezer, or a sequence of them (one per image)")
-    datas = [e.end_data() for e in ends]
-    return jax.tree.map(lambda *a: jnp.stack(a), *datas)
+    return stack_ends(ends)
 
 
 class ShapeData(eqx.Module):
@@ -156,7 +129,8 @@ class ShapeData(eqx.Module):
     - `length` $L > 0$; `s` `(p,)` arc lengths of the sampled points, increasing in $[0, L]$.
     - `points`: lab positions `(p, 3)`, or `(m, p, 3)` for `m` images under different loads.
     - `end`: the end condition (`Clamped`, `Loaded` or `Tweezer`), or a sequence of `m` of
-      them, one per image; `start`: the clamp at $s = 0$ (default: origin, identity frame).
+      them, one per image (stored as one `EndCondition` stacked over the images); `start`:
+      the clamp at $s = 0$ (default: origin, identity frame).
     - `sigma`: standard deviation of each coordinate of each point (isotropic noise): a
       scalar, `(p,)` or `(m, p)`.
     - `segments`: shooting pieces of the forward model.
@@ -170,7 +144,7 @@ class ShapeData(eqx.Module):
     points: Float[Array, "m p 3"]
     sigma: Float[Array, "m p"]
     start: Clamped
-    end: _EndData
+    end: EndCondition
     segments: int = eqx.field(static=True)
 
     def __init__(
@@ -185,8 +159,8 @@ class ShapeData(eqx.Module):
         segments: int = 1,
     ):
         owner = "ShapeData"
-        length = _positive_scalar(length, "length", owner)
-        s = _column(s, "s", owner)
+        length = float(finite_scalar(length, "length", owner, positive=True))
+        s = column(s, "s", owner)
         if np.any(np.diff(s) <= 0) or s[0] < 0 or s[-1] > length * (1 + 1e-12):
             raise ValueError(f"{owner}: s must increase strictly within [0, length={length}]")
         pts = np.asarray(points, dtype=float)
@@ -214,14 +188,14 @@ class ShapeData(eqx.Module):
         start = Clamped() if start is None else start
         if not isinstance(start, Clamped):
             raise ValueError(f"{owner}: start must be Clamped, got {type(start).__name__}")
-        dtype = jnp.result_type(float)
+        dtype = float_dtype()
         self.length = jnp.asarray(length, dtype)
         self.s = jnp.asarray(s, dtype)
         self.points = jnp.asarray(pts, dtype)
         self.sigma = jnp.asarray(sig, dtype)
         self.start = start
         self.end = ends
-        self.segments = _segments(segments, owner)
+        self.segments = check_integer(segments, "segments", owner)
 
     def __len__(self) -> int:
         return int(self.points.shape[0] * self.points.shape[1])
@@ -251,24 +225,23 @@ def synthetic_end_response_data(
     standard deviation `noise` times their root-mean-square (or absolute `(sigma1, sigma2)`),
     which are the sigmas of the data.  Points that do not converge raise `ValueError`.
     """
-    if controls not in CONTROLS:
-        raise ValueError(f"synthetic_end_response_data: controls must be one of {tuple(CONTROLS)}, got {controls!r}")
-    kind, control_index, response_index = CONTROLS[controls]
-    first = _column(first, "first", "synthetic_end_response_data")
-    second = _column(second, "second", "synthetic_end_response_data", first.shape[0])
-    dtype = jnp.result_type(float)
-    values = np.zeros((first.shape[0], 4))
-    values[:, control_index[0]] = first
-    values[:, control_index[1]] = second
-    options = _Options(
-        segments=_segments(segments, "synthetic_end_response_data"), solver=CommutatorFreeRK4(), max_ode_steps=16_384,
-        adjoint=diffrax.ForwardMode(), method="levenberg-marquardt", max_steps=64, continuation=0, guess_kind="helix",
-    )
-    tolerances = jnp.asarray([1e-11, 1e-11, 1e-11, 1e-11], dtype)
-    obs, _, sols, _ = _curve(rod, jnp.asarray(length, dtype), jnp.asarray(kind), jnp.asarray(values, dtype), tolerances, options, "independent")
-    obs, ok = np.asarray(obs), np.asarray(sols.ok)
+    owner = "synthetic_end_response_data"
+    if controls not in AXIAL_CONTROLS:
+        raise ValueError(f"{owner}: controls must be one of {tuple(AXIAL_CONTROLS)}, got {controls!r}")
+    test = AXIAL_CONTROLS[controls]
+    response_index = test.responses
+    first = column(first, "first", owner)
+    second = column(second, "second", owner, first.shape[0])
+    given = {AXIAL_OBSERVABLES[test.controls[0]]: first, AXIAL_OBSERVABLES[test.controls[1]]: second}
+    options = BoundaryValueOptions(segments=check_integer(segments, "segments", owner), atol=1e-11, ode_rtol=1e-11, ode_atol=1e-11)
+    curve = axial_response(rod, length, **given, mode="independent", options=options)
+    ok = np.asarray(curve.ok)
     if not ok.all():
-        raise ValueError(f"synthetic_end_response_data: points {np.flatnonzero(~ok)[:20].tolist()} did not converge")
+        raise ValueError(f"{owner}: points {np.flatnonzero(~ok)[:20].tolist()} did not converge")
+    obs = np.stack([np.asarray(getattr(curve, n)) for n in AXIAL_OBSERVABLES], -1)
+    values = np.zeros((first.shape[0], 4))
+    values[:, test.controls[0]] = first
+    values[:, test.controls[1]] = second
     exact = obs[:, list(response_index)]
     if isinstance(noise, tuple):
         sig = np.array([float(noise[0]), float(noise[1])])
@@ -283,7 +256,7 @@ def synthetic_end_response_data(
         exact = exact + sig * np.asarray(jax.random.normal(key, exact.shape))
     values[:, response_index[0]] = exact[:, 0]
     values[:, response_index[1]] = exact[:, 1]
-    sigmas = {OBSERVABLES[i] + "_sigma": sig[j] for j, i in enumerate(response_index)}
+    sigmas = {AXIAL_OBSERVABLES[i] + "_sigma": sig[j] for j, i in enumerate(response_index)}
     return EndResponseData(length, *values.T, controls=controls, segments=segments, **sigmas)
 
 
@@ -309,7 +282,7 @@ def synthetic_shape_data(
         raise ValueError(f"synthetic_shape_data: noise must be finite and >= 0, got {noise}")
     points = []
     for e in ends:
-        sol = solve_boundary_value(rod, length, start=start, end=e, saveat=s, segments=segments, rtol=1e-11, atol=1e-11, ode_rtol=1e-11, ode_atol=1e-11)
+        sol = solve_boundary_value(rod, length, start=start, end=e, saveat=s, segments=segments, atol=1e-11, ode_rtol=1e-11, ode_atol=1e-11)
         points.append(np.asarray(sol.x))
     points = np.stack(points)
     sigma = noise if noise > 0 else 1e-3 * float(length)

@@ -1,0 +1,23 @@
+"""Finite rods: end conditions, boundary-value solves by (multiple) shooting, and the
+axial response curves of springs and tweezer filaments."""
+
+from ._bulk import BulkHelix as BulkHelix, bulk_helix as bulk_helix
+from ._ends import (
+    AXIAL_CONTROLS as AXIAL_CONTROLS,
+    AXIAL_OBSERVABLES as AXIAL_OBSERVABLES,
+    AbstractEnd as AbstractEnd,
+    Clamped as Clamped,
+    EndCondition as EndCondition,
+    Loaded as Loaded,
+    Tweezer as Tweezer,
+    axial_ends as axial_ends,
+    stack_ends as stack_ends,
+)
+from ._options import BoundaryValueOptions as BoundaryValueOptions
+from ._response import (
+    ResponseCurve as ResponseCurve,
+    axial_response as axial_response,
+    force_extension as force_extension,
+    rotation_response as rotation_response,
+)
+from ._solve import BoundaryValueSolution as BoundaryValueSolution, solve_boundary_value as solve_boundary_value

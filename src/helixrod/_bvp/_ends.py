@@ -1,0 +1,293 @@
+"""Conditions at the ends of a finite rod, and the axial controls of spring and tweezer
+tests.
+
+The rod is clamped at $s = 0$; the condition at $s = L$ is six scalar equations:
+
+- `Clamped(position, frame)`: $x(L) = P$, $D(L) = R$;
+- `Loaded(force, moment, point)`: the lab force $N = F$ and the moment about `point` (a
+  fixed lab point; the end $x(L)$ itself when `point` is `None`) -- with a fixed point the
+  moment about it is conserved, so this is an initial-value problem in disguise;
+- `Tweezer(frame, force)`: $D(L) = R$ and $N = F$, the end position free (a magnetic bead:
+  the magnet fixes the bead's orientation and pulls with a known force).
+
+Each is turned into one uniform, traced form, `EndCondition` (its `kind` a traced integer),
+so that one compiled program serves every kind and a `vmap`-ped batch may mix them.  Frames
+are compared through the Gibbs vector of $R^TD$, whose only zero is the identity.
+
+Axial controls.  A spring or a tweezer filament in the canonical placement (`unloaded_state`:
+axis $e_z$ through the origin) is loaded along its axis by two of the four observables
+`AXIAL_OBSERVABLES` = (force $F$, moment $M$, extension $h$, rotation $\\Theta$); `AXIAL_CONTROLS`
+is the one table of the three pairs (which end kind, which two are controlled, which two
+respond), used by `axial_ends`, the response curves and the end-response data.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from .._geometry import unloaded_observables, unloaded_state
+from .._lie import gibbs, rotation_vector, rotation_z, so3_exp
+from .._misc import finite_array, finite_scalar, float_dtype, is_concrete
+
+CLAMPED, LOADED, TWEEZER = 0, 1, 2
+
+#: The axial observables, in the order of every `(..., 4)` array of them.
+AXIAL_OBSERVABLES = ("force", "moment", "extension", "rotation")
+
+
+class AxialControl(NamedTuple):
+    """An axial test: the end `kind`, and indices into `AXIAL_OBSERVABLES` of the two
+    `controls` (prescribed) and the two `responses` (solved for, in the order reported)."""
+
+    kind: int
+    controls: tuple[int, int]
+    responses: tuple[int, int]
+
+
+#: The three axial tests by name: a spring on hooks (force and moment prescribed), a
+#: magnetic tweezer (force and rotation), a spring between grips (extension and rotation).
+AXIAL_CONTROLS = {
+    "force-moment": AxialControl(LOADED, (0, 1), (2, 3)),
+    "force-rotation": AxialControl(TWEEZER, (0, 3), (2, 1)),
+    "extension-rotation": AxialControl(CLAMPED, (2, 3), (0, 1)),
+}
+#: `CONTROL_INDEX[kind]`: the indices of the two controls of each end kind.
+CONTROL_INDEX = np.array([next(c.controls for c in AXIAL_CONTROLS.values() if c.kind == k) for k in range(3)])
+
+
+def axial_controls(**values) -> tuple[str, dict]:
+    """The name in `AXIAL_CONTROLS` of the pair of keyword arguments that are not `None`,
+    and those values; `ValueError` for any other combination."""
+    given = {n: v for n, v in values.items() if v is not None}
+    name = "-".join(n for n in AXIAL_OBSERVABLES if n in given)
+    if name not in AXIAL_CONTROLS:
+        pairs = [" and ".join(p.split("-")) for p in AXIAL_CONTROLS]
+        raise ValueError(f"give one of the pairs {pairs}, got {list(given) or 'nothing'}")
+    return name, given
+
+
+def _check_rotation(frame, owner):
+    if is_concrete(frame):
+        f = np.asarray(frame)
+        gram = np.einsum("...ji,...jk->...ik", f, f) - np.eye(3)
+        if np.abs(gram).max(initial=0.0) > 1e-8 or np.any(np.linalg.det(f) < 0):
+            raise ValueError(
+                f"{owner}: frame must be a rotation (orthonormal columns d1, d2, d3, det +1); "
+                f"max |D^T D - I| = {np.abs(gram).max(initial=0.0):.2e}"
+            )
+
+
+class AbstractEnd(eqx.Module):
+    """A condition at the end $s = L$ of a rod clamped at $s = 0$ (six scalar equations):
+    `Clamped`, `Loaded`, `Tweezer`, or their uniform form `EndCondition`."""
+
+    @abc.abstractmethod
+    def condition(self) -> "EndCondition":
+        """The condition in the uniform form shared by every kind."""
+
+
+class EndCondition(AbstractEnd):
+    """Any end condition in one traced form: `kind` (0 clamped, 1 loaded, 2 tweezer) and
+    the data of every kind -- `position` `(3,)`, `frame` `(3, 3)`, `force` `(3,)`, `moment`
+    `(3,)`, `point` `(3,)` and `about_end` (the moment of a `Loaded` end is about the end
+    itself); fields a kind does not use are zero (identity frame).  Built by
+    `Clamped(...).condition()` and the like, or by `axial_end_condition` with a traced kind;
+    a stack of them (leading axis) is what `jax.vmap` maps over for a batch of mixed ends."""
+
+    kind: Int[Array, ""]
+    position: Float[Array, "3"]
+    frame: Float[Array, "3 3"]
+    force: Float[Array, "3"]
+    moment: Float[Array, "3"]
+    point: Float[Array, "3"]
+    about_end: Bool[Array, ""]
+
+    def condition(self) -> "EndCondition":
+        return self
+
+    def residual(self, x, frame, force, moment, scales):
+        """Scaled residual `(6,)` of the lab end state (position, frame, force, moment)."""
+        ell, f_scale, m_scale = scales[0], scales[1], scales[2]
+        point = jnp.where(self.about_end, x, self.point)
+        r_position = (x - self.position) / ell
+        r_frame = gibbs(self.frame.T @ frame)
+        r_force = (force - self.force) / f_scale
+        r_moment = (moment + jnp.cross(x - point, force) - self.moment) / m_scale
+        first = jnp.where(self.kind == CLAMPED, r_position, r_force)
+        second = jnp.where(self.kind == LOADED, r_moment, r_frame)
+        return jnp.concatenate([first, second])
+
+    def homotopy(self, t, x_free, frame_free) -> "EndCondition":
+        """The condition a fraction `t` of the way from the unloaded end (`t = 0`)."""
+        turn = rotation_vector(frame_free.T @ self.frame)
+        return eqx.tree_at(
+            lambda e: (e.position, e.frame, e.force, e.moment),
+            self,
+            ((1 - t) * x_free + t * self.position, frame_free @ so3_exp(t * turn), t * self.force, t * self.moment),
+        )
+
+    def finite(self) -> Bool[Array, ""]:
+        """Whether every value is finite."""
+        leaves = (self.position, self.frame, self.force, self.moment, self.point)
+        return jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in leaves]))
+
+
+def end_condition(kind, position=None, frame=None, force=None, moment=None, point=None) -> EndCondition:
+    """An `EndCondition` of a (concrete) `kind` with zeros for the fields it does not use."""
+    # NumPy constants: no eager JAX dispatch per solve (they are traced like JAX arrays).
+    dtype = float_dtype()
+    zero = np.zeros(3, dtype)
+    return EndCondition(
+        kind=np.asarray(kind, np.int32),
+        position=zero if position is None else position,
+        frame=np.eye(3, dtype=dtype) if frame is None else frame,
+        force=zero if force is None else force,
+        moment=zero if moment is None else moment,
+        point=zero if point is None else point,
+        about_end=np.asarray(point is None and kind == LOADED),
+    )
+
+
+class Clamped(AbstractEnd):
+    """Prescribed position and frame: `Clamped(position=(0, 0, 0), frame=identity)`.
+
+    `position` `(3,)` lab point; `frame` `(3, 3)` rotation with column $i$ = $d_{i+1}$ (lab).
+    The start condition of every problem, and the end condition of a rod clamped at both
+    ends (a spring test: grips that hold the wire ends).  Non-finite values or a frame that
+    is not a rotation raise `ValueError` (concrete values).
+    """
+
+    position: Float[Array, "3"]
+    frame: Float[Array, "3 3"]
+
+    def __init__(self, position: ArrayLike = (0.0, 0.0, 0.0), frame: ArrayLike | None = None):
+        position = finite_array(position, "position", "Clamped", (3,))
+        frame = jnp.eye(3, dtype=position.dtype) if frame is None else finite_array(frame, "frame", "Clamped", (3, 3))
+        _check_rotation(frame, "Clamped")
+        self.position, self.frame = position, frame
+
+    def condition(self) -> EndCondition:
+        return end_condition(CLAMPED, position=self.position, frame=self.frame)
+
+
+class Loaded(AbstractEnd):
+    """Prescribed end load (dead load): `Loaded(force, moment, point=None)`.
+
+    `force` `(3,)`: the lab force $n(L)$ applied to the end; `moment` `(3,)`: the applied
+    moment about `point` (a fixed lab point, e.g. on a spring's axis), or about the end
+    $x(L)$ itself when `point` is `None` (then it is $m(L)$ in lab components).
+    """
+
+    force: Float[Array, "3"]
+    moment: Float[Array, "3"]
+    point: Float[Array, "3"] | None
+
+    def __init__(self, force: ArrayLike = (0.0, 0.0, 0.0), moment: ArrayLike = (0.0, 0.0, 0.0), point: ArrayLike | None = None):
+        self.force = finite_array(force, "force", "Loaded", (3,))
+        self.moment = finite_array(moment, "moment", "Loaded", (3,))
+        self.point = None if point is None else finite_array(point, "point", "Loaded", (3,))
+
+    def condition(self) -> EndCondition:
+        return end_condition(LOADED, force=self.force, moment=self.moment, point=self.point)
+
+
+class Tweezer(AbstractEnd):
+    """Prescribed end frame and end force, free end position: `Tweezer(frame, force)`.
+
+    The magnetic-tweezer set-up: the magnet holds the bead's orientation `frame` `(3, 3)`
+    (e.g. the unloaded end frame turned about the axis by the magnet's rotation) and pulls
+    with `force` `(3,)` (lab); the torque is a reaction.
+    """
+
+    frame: Float[Array, "3 3"]
+    force: Float[Array, "3"]
+
+    def __init__(self, frame: ArrayLike, force: ArrayLike):
+        self.frame = finite_array(frame, "frame", "Tweezer", (3, 3))
+        self.force = finite_array(force, "force", "Tweezer", (3,))
+        _check_rotation(self.frame, "Tweezer")
+
+    def condition(self) -> EndCondition:
+        return end_condition(TWEEZER, frame=self.frame, force=self.force)
+
+
+def axial_ends(
+    rod,
+    length: ArrayLike,
+    *,
+    force: ArrayLike | None = None,
+    moment: ArrayLike | None = None,
+    extension: ArrayLike | None = None,
+    rotation: ArrayLike | None = None,
+) -> tuple[Clamped, AbstractEnd]:
+    """Start and end conditions of a spring (or tweezer) test along the axis of the rod.
+
+    The start is the canonical placement of the unloaded rod: its intrinsic helix
+    ($\\hat\\kappa$, $\\hat\\tau$, register $\\hat\\varphi$ from $\\hat u$) placed as
+    `helix_frame`/`helix_centreline` place it, axis $e_z$ through the origin (a straight
+    untwisted rod: origin, identity frame).  The end is set by two axial controls
+    (`AXIAL_CONTROLS`):
+
+    - `force`, `moment` -> `Loaded(F e_z, M e_z, point=0)`: axial force and moment along the
+      axis line (a spring loaded through hooks on its axis; an initial-value problem);
+    - `force`, `rotation` -> `Tweezer(R_z(Θ - Θ0) D0(L), F e_z)`: the magnetic tweezer -- end
+      frame turned about the axis, axial pull, end position free;
+    - `extension`, `rotation` -> `Clamped(R_z(Θ - Θ0) x0(L) + (h - h0) e_z, R_z(Θ - Θ0) D0(L))`:
+      grips moved along and turned about the axis.
+
+    $x_0(L)$, $D_0(L)$ are the unloaded end; `extension` $h$ is the axial end-to-end distance
+    and `rotation` $\\Theta$ the total end rotation about the axis, as in `spring_compliance`
+    (unloaded: $h_0 = L\\hat\\tau/|\\hat u|$, $\\Theta_0 = L|\\hat u|$, so `rotation=Θ0` means
+    "not turned"; $F$ along $e_z$, a pull for $\\hat\\tau > 0$).  Scalars, traced allowed.
+    """
+    try:
+        name, given = axial_controls(force=force, moment=moment, extension=extension, rotation=rotation)
+    except ValueError as error:
+        raise ValueError(f"axial_ends: {error}") from None
+    length = finite_scalar(length, "length", "axial_ends", positive=True)
+    values = {n: finite_scalar(v, n, "axial_ends") for n, v in given.items()}
+    start = Clamped(*unloaded_state(rod, 0.0))
+    kind = AXIAL_CONTROLS[name].kind
+    end = axial_end_condition(rod, length, kind, [values.get(n, 0.0) for n in AXIAL_OBSERVABLES])
+    if kind == LOADED:
+        return start, Loaded(end.force, end.moment, point=end.point)
+    if kind == TWEEZER:
+        return start, Tweezer(end.frame, end.force)
+    return start, Clamped(end.position, end.frame)
+
+
+def axial_end_condition(rod, length, kind, values) -> EndCondition:
+    """The end condition of `axial_ends` for a (possibly traced) `kind` (`CLAMPED`:
+    extension and rotation; `LOADED`: force and moment; `TWEEZER`: force and rotation) and
+    `values` = (force, moment, extension, rotation); entries the kind does not control are
+    ignored."""
+    dtype = float_dtype()
+    force, moment, extension, rotation = (jnp.asarray(v, dtype) for v in values)
+    x_end, frame_end = unloaded_state(rod, length)
+    h0, theta0 = unloaded_observables(rod, length)
+    e3 = jnp.array([0.0, 0.0, 1.0], dtype)
+    turn = rotation_z(rotation - theta0)
+    kind = jnp.asarray(kind, jnp.int32)
+    loaded = kind == LOADED
+    return EndCondition(
+        kind=kind,
+        position=turn @ x_end + (extension - h0) * e3,
+        frame=jnp.where(loaded, jnp.eye(3, dtype=dtype), turn @ frame_end),
+        force=force * e3,
+        moment=moment * e3,
+        point=jnp.zeros(3, dtype),
+        about_end=jnp.asarray(False),
+    )
+
+
+def stack_ends(ends) -> EndCondition:
+    """One `EndCondition` stacked over a sequence of ends (leading axis), for `jax.vmap`."""
+    conditions = [e.condition() for e in ends]
+    return jax.tree.map(lambda *a: jnp.stack(a), *conditions)

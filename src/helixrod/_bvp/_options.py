@@ -1,0 +1,98 @@
+"""The configuration of a boundary-value solve, checked when it is built."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import diffrax
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from .._kirchhoff import solve_static
+from .._lie import CommutatorFreeRK4, MuntheKaasRK
+from .._misc import check_choice, check_integer, is_concrete
+
+#: Root-finder steps: damped (Levenberg--Marquardt) or plain Newton steps.
+METHODS = ("levenberg-marquardt", "newton")
+
+
+class BoundaryValueOptions(eqx.Module):
+    """How `solve_boundary_value` (and the response curves and finite-rod fits built on it)
+    solves: one compilation per configuration of the static fields; the tolerances are
+    arrays, so changing them does not recompile.
+
+    - `segments`: shooting pieces $k$ (1: single shooting; more for long rods in spatially
+      unstable states, `wrench_growth_rate`).
+    - `continuation`: homotopy steps from the unloaded rod to the prescribed end (0: none).
+    - `method`: `"levenberg-marquardt"` (damped steps; robust) or `"newton"` (plain
+      Newton steps; cheapest from a good guess), both with Broyden updates.
+    - `max_steps`: root-finder iterations per solve.
+    - `atol`: root tolerance on the largest scaled residual (positions in units of
+      $\\ell = \\min(L, 1/|\\hat u|)$, forces of $\\bar K/\\ell^2$, moments of $\\bar K/\\ell$, frames by
+      the Gibbs vector; $\\bar K$ the mean bending/twisting stiffness); a solve is `ok` when
+      that residual is at most `10 atol`.
+    - `ode_rtol`, `ode_atol`, `solver` (`CommutatorFreeRK4()` or `MuntheKaasRK(...)`: the
+      shooting equations rely on their exact conservation of the lab wrench),
+      `max_ode_steps`: the integration of each piece.
+    - `adjoint`: `diffrax.ForwardMode()` (`jax.jvp`/`jax.jacfwd` through the solve) or
+      `diffrax.DirectAdjoint()` (also `jax.grad`/`jax.jacrev`, slower to compile and run).
+
+    Bad values raise `ValueError` here, when the options are built.
+    """
+
+    segments: int = eqx.field(static=True, default=1)
+    continuation: int = eqx.field(static=True, default=0)
+    method: str = eqx.field(static=True, default="levenberg-marquardt")
+    max_steps: int = eqx.field(static=True, default=64)
+    atol: Array = eqx.field(converter=jnp.asarray, default=1e-10)
+    ode_rtol: Array = eqx.field(converter=jnp.asarray, default=1e-10)
+    ode_atol: Array = eqx.field(converter=jnp.asarray, default=1e-10)
+    solver: diffrax.AbstractSolver = CommutatorFreeRK4()
+    max_ode_steps: int = eqx.field(static=True, default=16_384)
+    adjoint: diffrax.AbstractAdjoint = diffrax.ForwardMode()
+
+    def __check_init__(self):
+        owner = "BoundaryValueOptions"
+        check_integer(self.segments, "segments", owner)
+        check_integer(self.continuation, "continuation", owner, minimum=0)
+        check_integer(self.max_steps, "max_steps", owner)
+        check_integer(self.max_ode_steps, "max_ode_steps", owner)
+        check_choice(self.method, METHODS, "method", owner)
+        for name in ("atol", "ode_rtol", "ode_atol"):
+            value = getattr(self, name)
+            if jnp.shape(value) != ():
+                raise ValueError(f"{owner}: {name} must be a scalar, got shape {jnp.shape(value)}")
+            if is_concrete(value) and not (np.isfinite(float(value)) and float(value) > 0):
+                raise ValueError(f"{owner}: {name} must be finite and > 0, got {float(value)}")
+        if not isinstance(self.solver, (CommutatorFreeRK4, MuntheKaasRK)):
+            raise ValueError(
+                f"{owner}: solver must be CommutatorFreeRK4 or MuntheKaasRK: the shooting "
+                "equations rely on their exact conservation of the lab wrench"
+            )
+        if not isinstance(self.adjoint, (diffrax.ForwardMode, diffrax.DirectAdjoint)):
+            raise ValueError(
+                f"{owner}: adjoint must be diffrax.ForwardMode() or diffrax.DirectAdjoint() "
+                f"(Newton's method needs forward-mode derivatives of the flow), got {type(self.adjoint).__name__}"
+            )
+
+    def integrate(self, rod, n0, m0, length, ode_tol, **kwargs):
+        """`solve_static` with this configuration's integrator, frame and centreline
+        integrated, `throw=False` (a failed piece is flagged, never raised); `ode_tol` =
+        (rtol, atol)."""
+        return solve_static(
+            rod, n0, m0, length, outputs=("frame", "centreline"), solver=self.solver, rtol=ode_tol[0],
+            atol=ode_tol[1], max_steps=self.max_ode_steps, adjoint=self.adjoint, throw=False, **kwargs,
+        )
+
+
+def with_settings(options: BoundaryValueOptions | None, **settings) -> BoundaryValueOptions:
+    """`options` (default `BoundaryValueOptions()`) with the settings that are not `None`
+    replaced -- the keyword arguments of the entry points."""
+    if options is None:
+        options = BoundaryValueOptions()
+    elif not isinstance(options, BoundaryValueOptions):
+        raise ValueError(f"options must be a BoundaryValueOptions, got {type(options).__name__}")
+    given = {name: value for name, value in settings.items() if value is not None}
+    return dataclasses.replace(options, **given) if given else options

@@ -1,0 +1,376 @@
+"""End-response curves of finite springs and tweezer filaments, against the bulk helix.
+
+A rod of length $L$ in the canonical placement (`axial_ends`) is loaded along its axis by two
+controls (`AXIAL_CONTROLS`): force-extension at fixed axial moment (a hooked spring) or at
+fixed end rotation (a magnetic tweezer), rotation curves at fixed force (tweezer: torque and
+extension against turns) or at fixed extension (a spring twisted between grips), and in
+general any sequence of control pairs (`axial_response`).  Each point is one boundary-value
+solve; by default the points are solved in order, each warm-started from the previous one
+(continuation), inside one compiled `lax.scan`; `mode="independent"` solves them in parallel
+(`vmap`), each from the bulk-helix guess -- fine where that guess is good (a load through the
+axis is an initial-value problem and needs no continuation).
+
+Observables (`AXIAL_OBSERVABLES`): axial force $F = N\\cdot e_z$, axial moment $M$ (about the
+axis), extension $h = (x(L) - x(0))\\cdot e_z$, end rotation $\\Theta$: the unloaded
+$\\Theta_0 = L|\\hat u|$ plus the twist about $e_z$ of $D(L)D_0(L)^T$ (the end frame relative
+to the unloaded end frame), its whole turns counted by continuity along the curve (from the
+bulk prediction at the first point).  The bulk (uniform-helix) prediction at the same
+controls follows its own branch by continuation from the unloaded helix; the difference is
+the end effect of the clamp, which does not vanish at a clamp but whose share of the
+totals falls like $1/L$ (tested in `tests/test_bvp.py`).
+"""
+
+from __future__ import annotations
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from .._geometry import unloaded_observables, unloaded_state
+from .._lie import twist_angle, unwrap_near
+from .._misc import check_choice, finite_scalar, float_dtype, is_concrete, no_gradient
+from .._rod import check_one_rod
+from .._status import RESULTS, raise_if_failed
+from ._bulk import BulkHelix, bulk_helix_at
+from ._ends import AXIAL_CONTROLS, AXIAL_OBSERVABLES, CONTROL_INDEX, LOADED, Clamped, axial_controls, axial_end_condition
+from ._options import BoundaryValueOptions, with_settings
+from ._shooting import default_warm_start
+from ._solve import BoundaryValueSolution, solve
+
+MODES = ("continuation", "independent")
+
+
+class ResponseCurve(eqx.Module):
+    """A response curve of a finite rod and the bulk (uniform-helix) prediction.
+
+    `controls`: the prescribed pair (a key of `AXIAL_CONTROLS`, e.g. `"force-rotation"`),
+    `swept` the one that varies along the curve, `held` the other; `length` $L$.  Per point
+    (shape `(n,)`): `force`, `moment`, `extension`, `rotation` of the finite rod (controls
+    as prescribed, responses as solved; NaN where a solve failed; module docstring for the
+    conventions) and `bulk_force`, `bulk_moment`, `bulk_extension`, `bulk_rotation` of the
+    uniform helix with the same two controls (extension and rotation totals over $L$);
+    `result` (a `RESULTS` code per point) and `ok`, `bulk_ok`, `residual`, `num_steps`;
+    `solutions` the `BoundaryValueSolution` of every point (batched, end state only).
+    """
+
+    controls: str = eqx.field(static=True)
+    swept: str = eqx.field(static=True)
+    length: Float[Array, ""]
+    force: Float[Array, " n"]
+    moment: Float[Array, " n"]
+    extension: Float[Array, " n"]
+    rotation: Float[Array, " n"]
+    bulk_force: Float[Array, " n"]
+    bulk_moment: Float[Array, " n"]
+    bulk_extension: Float[Array, " n"]
+    bulk_rotation: Float[Array, " n"]
+    result: RESULTS
+    bulk_ok: Bool[Array, " n"]
+    residual: Float[Array, " n"]
+    num_steps: Int[Array, " n"]
+    solutions: BoundaryValueSolution
+
+    @property
+    def ok(self) -> Bool[Array, " n"]:
+        """Whether each point's solve succeeded."""
+        return self.result == RESULTS.successful
+
+    @property
+    def held(self) -> str:
+        """The control held fixed (the other of `controls`)."""
+        first, second = self.controls.split("-")
+        return second if self.swept == first else first
+
+    def end_effect(self, name: str) -> Array:
+        """Finite minus bulk value of the observable `name` (e.g. `"extension"`)."""
+        if name not in AXIAL_OBSERVABLES:
+            raise ValueError(f"end_effect: unknown observable {name!r}")
+        return getattr(self, name) - getattr(self, "bulk_" + name)
+
+
+def axial_observables(rod, length, sol: BoundaryValueSolution, rotation_hint) -> Array:
+    """(F, M, h, Theta) of a solution in the canonical placement (module docstring); the
+    whole turns of Theta are those nearest `rotation_hint`."""
+    x0 = sol.node_position[0]
+    force = sol.force[2]
+    moment = (sol.moment0 + jnp.cross(x0, sol.force))[2]
+    extension = sol.end_position[2] - x0[2]
+    _, frame_ref = unloaded_state(rod, length)
+    _, theta0 = unloaded_observables(rod, length)
+    rotation = theta0 + unwrap_near(twist_angle(sol.end_frame @ frame_ref.T), rotation_hint - theta0)
+    return jnp.stack([force, moment, extension, rotation])
+
+
+def _no_bulk(dtype) -> BulkHelix:
+    nan = jnp.full((), jnp.nan, dtype)
+    return BulkHelix(u=jnp.full(3, jnp.nan, dtype), mu1=nan, mu2=nan, force=nan, moment=nan, extension=nan,
+                     rotation=nan, result=RESULTS.invalid_input)
+
+
+@eqx.filter_jit
+def _curve(rod, length, kind, values, options: BoundaryValueOptions, mode: str, hints=None, with_bulk: bool = True):
+    """Solve every point of a curve; `values` `(n, 4)` = (F, M, h, Theta) per point.
+    `hints` `(n,)`: rotations near which to count whole turns (independent mode; default
+    the bulk prediction's); `with_bulk=False` (independent mode): no bulk prediction."""
+    start = Clamped(*unloaded_state(no_gradient(rod), 0.0))
+    start = jax.tree.map(jnp.asarray, start)
+    index = jnp.asarray(CONTROL_INDEX)[kind]
+    _, theta0 = unloaded_observables(rod, length)
+    unloaded = (jnp.asarray(rod.uhat), jnp.zeros(()), jnp.zeros(()))
+
+    def observe(sol, bulk, v, hint):
+        hint = jnp.where(kind == LOADED, hint, v[3])
+        obs = jnp.where(sol.ok, axial_observables(rod, length, sol, hint), jnp.nan)
+        return obs, jnp.where(bulk.ok, bulk.observables, jnp.nan)
+
+    if mode == "independent":
+
+        def one(v, hint):
+            end = axial_end_condition(rod, length, kind, v)
+            sol = solve(rod, length, start, end, None, None, options)
+            bulk = bulk_helix_at(rod, length, index, v, unloaded) if with_bulk else _no_bulk(values.dtype)
+            if hint is None:
+                hint = jnp.where(bulk.ok, bulk.rotation, theta0)
+            obs, bulk_obs = observe(sol, bulk, v, hint)
+            return obs, bulk_obs, sol, bulk.ok
+
+        obs, bulk_obs, sols, bulk_ok = jax.vmap(one)(values, hints)
+    else:
+        first_end = axial_end_condition(rod, length, kind, values[0])
+        guess0 = no_gradient(default_warm_start(rod, length, start, first_end, options.segments, "helix"))
+        bulk0 = bulk_helix_at(rod, length, index, values[0], unloaded)
+        hint0 = jnp.where(bulk0.ok, bulk0.rotation, theta0)
+
+        def step(carry, v):
+            guess, bulk_guess, hint = carry
+            end = axial_end_condition(rod, length, kind, v)
+            sol = solve(rod, length, start, end, guess, None, options)
+            bulk = bulk_helix_at(rod, length, index, v, bulk_guess)
+            obs, bulk_obs = observe(sol, bulk, v, hint)
+            # A failed point does not spoil the warm start of the next one.
+            keep = lambda new, old, ok: jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, old)  # noqa: E731
+            guess = keep(no_gradient(sol.warm_start()), guess, sol.ok)
+            bulk_guess = keep(no_gradient((bulk.u, bulk.mu1, bulk.mu2)), bulk_guess, bulk.ok)
+            hint = jnp.where(sol.ok, obs[3], hint)
+            return (guess, bulk_guess, hint), (obs, bulk_obs, sol, bulk.ok)
+
+        _, (obs, bulk_obs, sols, bulk_ok) = jax.lax.scan(step, (guess0, unloaded, hint0), values)
+    return obs, bulk_obs, sols, bulk_ok
+
+
+def _point_values(name, given, owner):
+    """The `(n, 4)` control values of each point, and the name of the swept control."""
+    dtype = float_dtype()
+    arrays = {}
+    for n, v in given.items():
+        a = jnp.asarray(v, dtype)
+        if a.ndim > 1:
+            raise ValueError(f"{owner}: {n} must be a scalar or 1-d array, got shape {a.shape}")
+        if is_concrete(a) and not np.all(np.isfinite(np.asarray(a))):
+            raise ValueError(f"{owner}: {n} must be finite")
+        arrays[n] = a
+    try:
+        (size,) = jnp.broadcast_shapes(*(a.shape for a in arrays.values()), (1,))
+    except ValueError:
+        raise ValueError(f"{owner}: the controls do not broadcast: {[a.shape for a in arrays.values()]}") from None
+    if size < 1:
+        raise ValueError(f"{owner}: no points")
+    columns = [jnp.broadcast_to(arrays.get(n, jnp.zeros((), dtype)), (size,)) for n in AXIAL_OBSERVABLES]
+    swept = next((n for n in name.split("-") if arrays[n].ndim == 1), name.split("-")[0])
+    return jnp.stack(columns, -1), swept
+
+
+def axial_response(
+    rod,
+    length: ArrayLike,
+    *,
+    force: ArrayLike | None = None,
+    moment: ArrayLike | None = None,
+    extension: ArrayLike | None = None,
+    rotation: ArrayLike | None = None,
+    mode: str = "continuation",
+    rotation_hint: ArrayLike | None = None,
+    bulk: bool = True,
+    options: BoundaryValueOptions | None = None,
+    segments: int | None = None,
+    method: str | None = None,
+    atol: float | None = None,
+    max_steps: int | None = None,
+    ode_rtol: float | None = None,
+    ode_atol: float | None = None,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    throw: bool = False,
+) -> ResponseCurve:
+    """The axial response of a finite rod at a sequence of control pairs: two of `force`,
+    `moment`, `extension`, `rotation` (scalars or `(n,)` arrays, broadcast; the pairs of
+    `axial_ends`), each point solved by `solve_boundary_value` in the canonical placement.
+
+    `mode`: `"continuation"` (default; in order, each solve warm-started from the previous)
+    or `"independent"` (vmapped solves from the bulk guess).  `rotation_hint` `(n,)`
+    (independent mode): count the whole turns of a responding rotation nearest these
+    values (e.g. measured ones) instead of the bulk prediction's; `bulk=False` skips the
+    bulk prediction (its fields NaN).  `options` and the keywords after it: as
+    `solve_boundary_value`.  `throw`: raise `SolverError` if any point fails (default
+    `False`: failed points have `ok = False` and NaN observables).  jit/vmap safe.
+    """
+    owner = "axial_response"
+    try:
+        name, given = axial_controls(force=force, moment=moment, extension=extension, rotation=rotation)
+    except ValueError as error:
+        raise ValueError(f"{owner}: {error}") from None
+    values, swept = _point_values(name, given, owner)
+    return _response(
+        rod, length, name, values, swept, mode=mode, rotation_hint=rotation_hint, bulk=bulk, owner=owner,
+        throw=throw, options=with_settings(
+            options, segments=segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
+            ode_atol=ode_atol, adjoint=adjoint,
+        ),
+    )
+
+
+def _response(rod, length, name, values, swept, *, mode, options, owner, throw, rotation_hint=None, bulk=True):
+    check_choice(mode, MODES, "mode", owner)
+    check_one_rod(rod, owner)
+    length = finite_scalar(length, "length", owner, positive=True)
+    hints = None
+    if rotation_hint is not None or not bulk:
+        if mode != "independent":
+            raise ValueError(f"{owner}: rotation_hint= and bulk=False apply to mode='independent'")
+        # Without a bulk prediction, turns are counted near the given (or control) rotations.
+        hint = values[:, 3] if rotation_hint is None else jnp.asarray(rotation_hint, values.dtype)
+        hints = jnp.broadcast_to(hint, values.shape[:1])
+    kind = jnp.asarray(AXIAL_CONTROLS[name].kind, jnp.int32)
+    obs, bulk_obs, sols, bulk_ok = _curve(rod, length, kind, values, options, mode, hints, bool(bulk))
+    curve = ResponseCurve(
+        controls=name,
+        swept=swept,
+        length=length,
+        force=obs[:, 0],
+        moment=obs[:, 1],
+        extension=obs[:, 2],
+        rotation=obs[:, 3],
+        bulk_force=bulk_obs[:, 0],
+        bulk_moment=bulk_obs[:, 1],
+        bulk_extension=bulk_obs[:, 2],
+        bulk_rotation=bulk_obs[:, 3],
+        result=sols.result,
+        bulk_ok=bulk_ok,
+        residual=sols.residual,
+        num_steps=sols.num_steps,
+        solutions=sols,
+    )
+    return raise_if_failed(curve, curve.result, owner) if throw else curve
+
+
+def _swept_values(values, name, what):
+    values = jnp.asarray(values, float_dtype())
+    if values.ndim != 1 or values.shape[0] < 1:
+        raise ValueError(f"{name}: {what} must be a non-empty 1-d array, got shape {values.shape}")
+    if is_concrete(values) and not np.all(np.isfinite(np.asarray(values))):
+        raise ValueError(f"{name}: {what} must be finite")
+    return values
+
+
+def force_extension(
+    rod,
+    length: ArrayLike,
+    forces: ArrayLike,
+    *,
+    moment: ArrayLike | None = None,
+    rotation: ArrayLike | None = None,
+    mode: str = "continuation",
+    options: BoundaryValueOptions | None = None,
+    segments: int | None = None,
+    method: str | None = None,
+    atol: float | None = None,
+    max_steps: int | None = None,
+    ode_rtol: float | None = None,
+    ode_atol: float | None = None,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    throw: bool = False,
+) -> ResponseCurve:
+    """Force-extension curve of a finite rod of length `length`, axial `forces` `(n,)`.
+
+    Held fixed: the axial `moment` (default 0: a spring loaded through hooks on its axis,
+    free to turn; a `Loaded` end about the axis) or the end `rotation` $\\Theta$ (total, as
+    `axial_ends`; a magnetic tweezer, `Tweezer` end).  Returns a `ResponseCurve` with the
+    extension (and the moment or rotation) of the finite rod and of the bulk helix.
+
+    `mode`: `"continuation"` (default; in order, each solve warm-started from the
+    previous -- sort `forces` from small to large) or `"independent"` (vmapped solves from
+    the bulk guess).  `options` and the keywords after it: as `solve_boundary_value`;
+    `throw` as `axial_response`.  jit/vmap safe (e.g. `jax.vmap` over lengths); unconverged
+    points have `ok = False` and NaN observables.
+
+    **Example**
+
+    ```python
+    rod = helixrod.Rod(1.0, 1.0, 0.77, uhat=(0.0, 1.0, 0.3))
+    curve = helixrod.force_extension(rod, 60.0, jnp.linspace(0.0, 0.05, 50))
+    curve.extension, curve.bulk_extension
+    ```
+    """
+    owner = "force_extension"
+    if moment is not None and rotation is not None:
+        raise ValueError(f"{owner}: give moment= or rotation=, not both")
+    forces = _swept_values(forces, owner, "forces")
+    if rotation is None:
+        held = {"moment": finite_scalar(0.0 if moment is None else moment, "moment", owner)}
+    else:
+        held = {"rotation": finite_scalar(rotation, "rotation", owner)}
+    name, given = axial_controls(force=forces, **held)
+    values, _ = _point_values(name, given, owner)
+    return _response(
+        rod, length, name, values, "force", mode=mode, owner=owner, throw=throw, options=with_settings(
+            options, segments=segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
+            ode_atol=ode_atol, adjoint=adjoint,
+        ),
+    )
+
+
+def rotation_response(
+    rod,
+    length: ArrayLike,
+    rotations: ArrayLike,
+    *,
+    force: ArrayLike | None = None,
+    extension: ArrayLike | None = None,
+    mode: str = "continuation",
+    options: BoundaryValueOptions | None = None,
+    segments: int | None = None,
+    method: str | None = None,
+    atol: float | None = None,
+    max_steps: int | None = None,
+    ode_rtol: float | None = None,
+    ode_atol: float | None = None,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    throw: bool = False,
+) -> ResponseCurve:
+    """Torque (and extension or force) against the end rotation of a finite rod.
+
+    `rotations` `(n,)`: total end rotations $\\Theta$ about the axis (as `axial_ends`;
+    $\\Theta_0 = L|\\hat u|$ is the unloaded end).  Held fixed (exactly one): the axial
+    `force` (magnetic tweezer: torque and extension against turns, `Tweezer` end) or the
+    `extension` $h$ (a spring twisted between grips: torque and axial force, `Clamped`
+    end).  Other arguments as `force_extension`; continuation in the rotation counts the
+    whole turns of the end.
+    """
+    owner = "rotation_response"
+    if (force is None) == (extension is None):
+        raise ValueError(f"{owner}: give exactly one of force= or extension=")
+    rotations = _swept_values(rotations, owner, "rotations")
+    if force is not None:
+        held = {"force": finite_scalar(force, "force", owner)}
+    else:
+        held = {"extension": finite_scalar(extension, "extension", owner)}
+    name, given = axial_controls(rotation=rotations, **held)
+    values, _ = _point_values(name, given, owner)
+    return _response(
+        rod, length, name, values, "rotation", mode=mode, owner=owner, throw=throw, options=with_settings(
+            options, segments=segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
+            ode_atol=ode_atol, adjoint=adjoint,
+        ),
+    )

@@ -1,0 +1,315 @@
+"""The shooting equations of a finite rod: per-piece flows with a materialised Jacobian,
+the residual, the root solve, its implicit derivatives, and the initial guesses.
+
+With `segments = k` the rod is cut into $k$ equal pieces; the unknowns are the lab force
+$N$, the lab moment $M_0$ at $s = 0$ and the position and frame ($x_j$, $D_j = \\bar D_j
+\\exp\\hat w_j$) of the start of pieces $1..k-1$, and the equations are the continuity of
+position and frame at the $k - 1$ junctions plus the end condition: $6k$ equations in $6k$
+unknowns ($k = 1$ is single shooting).  The wrench needs no junction condition: the
+geometric integrators keep the lab force and the moment about a fixed point exactly (to
+round-off), so the wrench at the start of each piece is $(N, M_0 - (x_j - x_0)\\times N)$.
+The pieces are integrated in parallel (`vmap`) and the flow of each piece depends, up to a
+rigid motion, only on its local start wrench: its $18\\times 6$ Jacobian is computed once per
+piece (custom JVP), so a Jacobian costs about six integrations of the whole rod whatever
+$k$ (and most root-finder steps need none: Broyden updates).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+from jaxtyping import Array, Float
+
+from .._geometry import unloaded_observables, unloaded_state
+from .._lie import gibbs, rotation_z, so3_exp, twist_angle
+from .._misc import no_gradient
+from ._bulk import bulk_helix_at
+from ._ends import CONTROL_INDEX, LOADED, TWEEZER, Clamped, EndCondition
+from ._options import BoundaryValueOptions
+from ._root_finder import LevenbergMarquardtBroyden
+
+
+def _flow_one(theta, wrench, options: BoundaryValueOptions, ode_tol):
+    """Integrate one piece from the identity pose at the origin with local start wrench
+    `wrench` (6,): the flat (18,) vector (p, R, n_end, m_end); NaN if the solve failed."""
+    rod, piece = theta
+    sol = options.integrate(rod, wrench[:3], wrench[3:], piece, ode_tol)
+    out = jnp.concatenate([sol.x[-1], sol.frame[-1].reshape(9), sol.n[-1], sol.m[-1]])
+    return jnp.where(sol.ok, out, jnp.nan)
+
+
+def _tangent_part(tree, tangents):
+    """(differentiated part of `tree`, the rest, its tangents) for a `filter_custom_jvp`
+    tangent pytree with `None` at undifferentiated leaves."""
+    is_none = lambda t: t is None  # noqa: E731
+    mask = jax.tree.map(lambda t: t is not None, tangents, is_leaf=is_none)
+    diff, static = eqx.partition(tree, mask)
+    return diff, static, eqx.filter(tangents, mask, is_leaf=is_none)
+
+
+def per_piece(fn, xs):
+    """`jax.vmap(fn)(xs)` over the pieces (leading axis); a single piece without `vmap`:
+    a batched integration loop was measured to cost about twice as much."""
+    if xs.shape[0] == 1:
+        return jax.tree.map(lambda a: a[None], fn(xs[0]))
+    return jax.vmap(fn)(xs)
+
+
+@eqx.filter_custom_jvp
+def _flows(wrench, theta, ode_tol, *, options):
+    """Flows of all pieces, `(k, 18)`, from their local start wrenches `(k, 6)`."""
+    return per_piece(lambda w: _flow_one(theta, w, options, ode_tol), wrench)
+
+
+@_flows.def_jvp
+def _flows_jvp(primals, tangents, *, options):
+    # The Jacobian with respect to the start wrench depends on primals only: computed once
+    # per piece (six tangent integrations, all pieces in parallel) and reused by every
+    # tangent direction -- a Jacobian of k pieces costs what one of single shooting does.
+    # It is integrated at the Jacobian tolerance `ode_tol[2:]` (`jacobian_tolerance`: looser
+    # inside the root finder, where it only steers the steps; the ODE tolerance itself
+    # for the derivatives of the solution, `implicit`), the flows at `ode_tol[:2]`.
+    wrench, theta, ode_tol = primals
+    t_wrench, t_theta, _ = tangents
+
+    def jacobian(w):
+        basis = jnp.eye(6, dtype=w.dtype)
+        one = lambda ww: _flow_one(theta, ww, options, ode_tol[2:])  # noqa: E731
+        return jax.vmap(lambda v: jax.jvp(one, (w,), (v,))[1])(basis)
+
+    out = per_piece(lambda w: _flow_one(theta, w, options, ode_tol), wrench)  # (k, 18)
+    jac = per_piece(jacobian, wrench)  # (k, 6, 18)
+    t_out = jnp.zeros_like(out)
+    if t_wrench is not None:
+        t_out = t_out + jnp.einsum("kij,ki->kj", jac, t_wrench)
+    if t_theta is not None and jax.tree.leaves(t_theta):
+        diff, static, t_diff = _tangent_part(theta, t_theta)
+        flows = lambda d: per_piece(lambda w: _flow_one(eqx.combine(d, static), w, options, ode_tol), wrench)  # noqa: E731
+        t_out = t_out + jax.jvp(flows, (diff,), (t_diff,))[1]
+    return out, t_out
+
+
+class ShootingArgs(eqx.Module):
+    """Traced data of the shooting equations."""
+
+    rod: object
+    length: Array
+    start: Clamped
+    end: EndCondition
+    ref_x: Array  # (k-1, 3) reference node positions
+    ref_frame: Array  # (k-1, 3, 3) reference node frames
+    scales: Array  # (ell, force scale, moment scale)
+    ode_tol: Array  # (rtol, atol) of the flows, then (rtol, atol) of their Jacobian
+
+
+def nodes_of(y, args: ShootingArgs, k: int):
+    """(N, M0, start positions `(k, 3)`, start frames `(k, 3, 3)`) of the pieces at `y`."""
+    N = y[:3] * args.scales[1]
+    M0 = y[3:6] * args.scales[2]
+    z = y[6:].reshape(k - 1, 6)
+    xs = jnp.concatenate([args.start.position[None], args.ref_x + z[:, :3] * args.scales[0]], 0)
+    frames = jnp.concatenate([args.start.frame[None], args.ref_frame @ so3_exp(z[:, 3:])], 0)
+    return N, M0, xs, frames
+
+
+def _pieces(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: bool = True):
+    """Start nodes and lab end states of every piece.  `materialise`: differentiate the
+    flows through their per-piece Jacobian (`_flows`; for the many directions of a Newton
+    step) or directly (for the few directions of a parameter derivative)."""
+    k = options.segments
+    N, M0, xs, frames = nodes_of(y, args, k)
+    moments = M0[None] - jnp.cross(xs - args.start.position[None], N[None])
+    local = jnp.concatenate([jnp.einsum("kji,j->ki", frames, N), jnp.einsum("kji,kj->ki", frames, moments)], -1)
+    theta = (args.rod, args.length / k)
+    if materialise:
+        flows = _flows(local, theta, args.ode_tol, options=options)
+    else:
+        flows = per_piece(lambda w: _flow_one(theta, w, options, args.ode_tol), local)
+    p, R, n_end, m_end = flows[:, :3], flows[:, 3:12].reshape(k, 3, 3), flows[:, 12:15], flows[:, 15:]
+    x_end = xs + jnp.einsum("kij,kj->ki", frames, p)
+    frame_end = frames @ R
+    ends = (x_end, frame_end, jnp.einsum("kij,kj->ki", frame_end, n_end), jnp.einsum("kij,kj->ki", frame_end, m_end))
+    return (N, M0, xs, frames), ends
+
+
+def _residual(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: bool = True):
+    """The 6k shooting equations; aux: the nodes and end states."""
+    nodes, ends = _pieces(y, args, options, materialise)
+    _, _, xs, frames = nodes
+    x_end, frame_end, force_end, moment_end = ends
+    junction_x = (x_end[:-1] - xs[1:]) / args.scales[0]
+    junction_r = gibbs(jnp.swapaxes(frames[1:], -1, -2) @ frame_end[:-1])
+    end = args.end.residual(x_end[-1], frame_end[-1], force_end[-1], moment_end[-1], args.scales)
+    residual = jnp.concatenate([jnp.concatenate([junction_x, junction_r], -1).reshape(-1), end])
+    return residual, (nodes, ends)
+
+
+def root(y0, args: ShootingArgs, options: BoundaryValueOptions):
+    """Solve the shooting equations (no derivatives: see `implicit`).  Returns the root,
+    the pieces there (aux), the largest scaled residual, the result code and the number of
+    steps."""
+    fn = lambda y, a: _residual(y, a, options)  # noqa: E731
+    solver = LevenbergMarquardtBroyden(atol=options.atol, damped=options.method != "newton")
+    y0, args = no_gradient((y0, args))
+    sol = optx.root_find(fn, solver, y0, args, has_aux=True, max_steps=options.max_steps, throw=False)
+    residual = jnp.max(jnp.abs(sol.stats["residual"]))
+    return sol.value, sol.aux, residual, sol.result, sol.stats["num_steps"]
+
+
+@eqx.filter_custom_jvp
+def implicit(y, pieces, args, *, options):
+    """The root `y` of the shooting equations at `args` and the `pieces` there, with the
+    derivatives of the implicit function theorem: $\\dot y = -J^{-1}\\,\\partial_\\theta F\\,
+    \\dot\\theta$ and $\\dot P = P_y\\dot y + \\partial_\\theta P\\,\\dot\\theta$, with the Jacobians
+    $J = F_y$ and $P_y$ integrated at the ODE tolerance itself (the root solve steers with
+    looser ones) and one forward-mode pass through the flows for $\\partial_\\theta$.  (Not
+    `optimistix.ImplicitAdjoint`: its linear solve raises on a non-finite input, so one
+    failed point would abort a differentiated batch; here a failed point gets NaN
+    derivatives.)"""
+    return y, pieces
+
+
+@implicit.def_jvp
+def _implicit_jvp(primals, tangents, *, options):
+    y, pieces, args = primals
+    t_args = tangents[2]
+    if t_args is None or not jax.tree.leaves(t_args):
+        return (y, pieces), jax.tree.map(jnp.zeros_like, (y, pieces))
+    exact = eqx.tree_at(lambda a: a.ode_tol, args, jnp.concatenate([args.ode_tol[:2], args.ode_tol[:2]]))
+    _, lin = jax.linearize(lambda z: _residual(z, exact, options), y)
+    jac, pieces_jac = jax.vmap(lin, out_axes=-1)(jnp.eye(y.size, dtype=y.dtype))
+    diff, static, t_diff = _tangent_part(args, t_args)
+    residual = lambda d: _residual(y, eqx.combine(d, static), options, materialise=False)  # noqa: E731
+    _, (b, t_pieces) = jax.jvp(residual, (diff,), (t_diff,))
+    good = jnp.all(jnp.isfinite(jac))
+    safe = jnp.where(good, jac, jnp.eye(y.size, dtype=y.dtype))
+    t_y = jnp.where(good, -jnp.linalg.solve(safe, b), jnp.nan)
+    t_pieces = jax.tree.map(lambda a, t: t + a @ t_y, pieces_jac, t_pieces)
+    return (y, pieces), (t_y, t_pieces)
+
+
+def rebase(y, args: ShootingArgs, k: int) -> tuple[Array, ShootingArgs]:
+    """Move the node unknowns into the reference nodes (keeps node rotations small)."""
+    _, _, xs, frames = nodes_of(y, args, k)
+    return y.at[6:].set(0.0), eqx.tree_at(lambda a: (a.ref_x, a.ref_frame), args, (xs[1:], frames[1:]))
+
+
+# The Jacobian that steers the root finder is integrated at no tighter than this.
+_JACOBIAN_ODE_TOL = 1e-6
+
+
+def jacobian_tolerance(ode_tol):
+    """ODE (rtol, atol) of the Jacobian that steers the root finder: looser than the flows'
+    own.  The Jacobian only sets the step (its error makes convergence linear with a rate of
+    about its relative error, and Broyden updates recover most of that), while the residual
+    -- and so the root -- keeps the full ODE tolerance.  On the spring of
+    `benchmarks/bench_finite.py` its six tangent integrations take 25 steps (the stability
+    cap of the step) instead of 58 at 1e-8 and 179 at 1e-10."""
+    return jnp.maximum(ode_tol, _JACOBIAN_ODE_TOL)
+
+
+# -- initial guesses ------------------------------------------------------------------------
+
+
+class WarmStart(eqx.Module):
+    """A start from a previous solution of the same number of pieces: the lab force, the
+    lab moment at $s = 0$ and the start position and frame of each piece."""
+
+    force: Float[Array, "3"]
+    moment0: Float[Array, "3"]
+    node_position: Float[Array, "k 3"]
+    node_frame: Float[Array, "k 3 3"]
+
+
+def _placement(rod, start: Clamped):
+    """Rigid motion (R_g, x_g) taking the canonical placement to the actual start clamp."""
+    x_c, frame_c = unloaded_state(rod, 0.0)
+    R_g = start.frame @ frame_c.T
+    return R_g, start.position - R_g @ x_c
+
+
+def free_nodes(rod, length, start, k, twist=0.0, stretch=0.0):
+    """Nodes (x, D) at s = jL/k, j = 0..k: the unloaded shape, twisted by `twist` and
+    stretched by `stretch` about its axis in proportion to s."""
+    R_g, x_g = _placement(rod, start)
+    s = jnp.arange(k + 1) * (length / k)
+    x_c, frame_c = unloaded_state(rod, s)
+    t = s / length
+    turn = rotation_z(t * twist)
+    e3 = jnp.array([[0.0, 0.0, 1.0]])
+    x_c = jnp.einsum("kij,kj->ki", turn, x_c) + (t * stretch)[:, None] * e3
+    return x_c @ R_g.T + x_g[None], jnp.einsum("ij,kjl->kil", R_g, turn @ frame_c)
+
+
+def _axial_guess(rod, length, start, end: EndCondition, guess_kind: str):
+    """(N, M0, twist, stretch): initial wrench and axial deformation of the nodes, from the
+    uniform helix with the end's axial extension (or force) and rotation."""
+    R_g, x_g = _placement(rod, start)
+    axis = R_g[:, 2]
+    h0, theta0 = unloaded_observables(rod, length)
+    x_free, frame_free = unloaded_state(rod, length)
+    x_free, frame_free = R_g @ x_free + x_g, R_g @ frame_free
+    loaded, tweezer = end.kind == LOADED, end.kind == TWEEZER
+    # Loaded: exact wrench (moment about a fixed point is conserved; about the end, the
+    # unloaded end is the lever arm).
+    point = jnp.where(end.about_end, x_free, end.point)
+    loaded_m0 = end.moment - jnp.cross(start.position - point, end.force)
+    twist = jnp.where(loaded, 0.0, twist_angle(R_g.T @ end.frame @ frame_free.T @ R_g))
+    stretch_clamped = (end.position - start.position) @ axis - h0
+    # A loaded end needs no bulk solve; the clamped controls stand in for its index.
+    index = jnp.asarray(CONTROL_INDEX)[jnp.where(loaded, 0, end.kind)]
+    values = jnp.stack([end.force @ axis, 0.0 * h0, h0 + stretch_clamped, theta0 + twist])
+    if guess_kind == "helix":
+        bulk = bulk_helix_at(rod, length, index, values, max_steps=24, light=True)
+        force = jnp.where(bulk.ok, bulk.force, 0.0)
+        moment = jnp.where(bulk.ok, bulk.moment, 0.0)
+        stretch_tweezer = jnp.where(bulk.ok, bulk.extension - h0, 0.0)
+    else:
+        force, moment, stretch_tweezer = 0.0 * h0, 0.0 * h0, 0.0 * h0
+    N = jnp.where(loaded | tweezer, end.force, force * axis)
+    M0 = jnp.where(loaded, loaded_m0, moment * axis - jnp.cross(start.position - x_g, N))
+    stretch = jnp.where(loaded, 0.0, jnp.where(tweezer, stretch_tweezer, stretch_clamped))
+    return N, M0, twist, stretch
+
+
+def default_warm_start(rod, length, start, end: EndCondition, k: int, guess_kind: str) -> WarmStart:
+    """The default guess (`_axial_guess` and the nodes it deforms) as a `WarmStart`."""
+    N, M0, twist, stretch = _axial_guess(rod, length, start, end, guess_kind)
+    xs, frames = free_nodes(rod, length, start, k, twist, stretch)
+    return WarmStart(N, M0, xs[:k], frames[:k])
+
+
+def _trajectory_nodes(rod, length, start, N, M0, k, options: BoundaryValueOptions, ode_tol):
+    """Nodes at s = jL/k from integrating the start wrench (N, M0) (the single-shooting
+    trajectory of a guess); the unloaded nodes where that integration fails."""
+    sol = options.integrate(
+        rod, start.frame.T @ N, start.frame.T @ M0, length, ode_tol, frame0=start.frame, x0=start.position,
+        saveat=jnp.arange(k + 1) * (length / k),
+    )
+    x_free, frame_free = free_nodes(rod, length, start, k)
+    good = sol.ok & jnp.all(jnp.isfinite(sol.x)) & jnp.all(jnp.isfinite(sol.frame))
+    return jnp.where(good, sol.x, x_free), jnp.where(good, sol.frame, frame_free)
+
+
+def initial(rod, length, start, end, guess, options: BoundaryValueOptions, guess_kind: str, scales, ode_tol):
+    """Initial unknown vector and reference nodes.  `guess`: `None` (the default guess of
+    `guess_kind`), a `WarmStart`, or a pair `(n0, m0)` of start wrenches (director frame)."""
+    k = options.segments
+    if options.continuation > 0:
+        x_nodes, frame_nodes = free_nodes(rod, length, start, k)
+        N = M0 = jnp.zeros(3)
+    elif guess is None:
+        warm = default_warm_start(rod, length, start, end, k, guess_kind)
+        N, M0, x_nodes, frame_nodes = warm.force, warm.moment0, warm.node_position, warm.node_frame
+    elif isinstance(guess, WarmStart):
+        N, M0, x_nodes, frame_nodes = guess.force, guess.moment0, guess.node_position, guess.node_frame
+    else:
+        N, M0 = start.frame @ guess[0], start.frame @ guess[1]
+        if k > 1:
+            x_nodes, frame_nodes = _trajectory_nodes(rod, length, start, N, M0, k, options, ode_tol)
+        else:
+            x_nodes, frame_nodes = free_nodes(rod, length, start, k)
+    y = jnp.concatenate([N / scales[1], M0 / scales[2], jnp.zeros(6 * (k - 1))])
+    return y, x_nodes[1:k], frame_nodes[1:k]

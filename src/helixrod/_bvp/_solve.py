@@ -1,0 +1,327 @@
+"""Boundary-value problems of finite Kirchhoff rods, solved by (multiple) shooting.
+
+The rod is clamped at $s = 0$ (position $x_0$, frame $D_0$).  The unknowns are the lab force
+$N$ (constant along the rod) and the lab moment $M_0$ at $s = 0$; the moment about any fixed
+point is constant too, so the lab moment at any point is $M(s) = M_0 - (x(s) - x_0)\\times N$.
+The end condition at $s = L$ (`_ends.py`) gives six equations, and with `segments = k` the
+junctions of the pieces $6(k - 1)$ more (`_shooting.py`).
+
+Why multiple shooting.  Where the loaded rod is *spatially unstable* -- the linearised
+wrench flow has eigenvalues with real part $\\lambda > 0$, e.g. a helical spring pulled at
+fixed end rotation -- errors in the initial wrench grow like $e^{\\lambda L}$ and single
+shooting loses its Newton basin and then its precision as $\\lambda L$ grows; pieces of
+length $L/k$ bring that to $e^{\\lambda L/k}$.  Measured limits: README and
+`benchmarks/bench_finite.py`.
+
+Root solve.  Levenberg--Marquardt steps with Broyden updates (`_root_finder.py`), optionally
+along a homotopy (`continuation`) from the unloaded rod to the prescribed end.  Derivatives
+are those of the implicit function theorem on the shooting equations,
+$\\dot y = -J^{-1}\\partial_\\theta F\\,\\dot\\theta$, with the Jacobian $J$ of the converged
+solve: forward mode with the default `diffrax.ForwardMode()`, `diffrax.DirectAdjoint()`
+also allows reverse mode.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from .._geometry import unloaded_state
+from .._misc import finite_scalar, float_dtype, increasing_within, is_concrete, no_gradient
+from .._rod import check_one_rod
+from .._status import RESULTS, promote, raise_if_failed
+from ._bulk import length_scale, stiffness_scale
+from ._ends import LOADED, AbstractEnd, Clamped, EndCondition, end_condition
+from ._options import BoundaryValueOptions, with_settings
+from ._shooting import (
+    ShootingArgs,
+    WarmStart,
+    free_nodes,
+    implicit,
+    initial,
+    jacobian_tolerance,
+    per_piece,
+    rebase,
+    root,
+)
+
+
+class BoundaryValueSolution(eqx.Module):
+    """Solution of `solve_boundary_value`.
+
+    Saved at `s` (shape `(p,)`; `saveat=None` saves $s = L$ only): `x` `(p, 3)` centreline and
+    `frame` `(p, 3, 3)` (lab), `n`, `m` `(p, 3)` force and moment in the director frame.
+    `n0`, `m0` `(3,)`: the wrench at $s = 0$ in the director frame, so that
+    `solve_static(rod, n0, m0, L, frame0=start.frame, x0=start.position)` is the solution
+    (where single shooting is stable); `force` `(3,)` the lab force $N$ (constant),
+    `moment0` the lab moment at $s = 0$; `end_position`, `end_frame`, `end_force`,
+    `end_moment` the lab state at $s = L$; `node_position` `(k, 3)`, `node_frame`
+    `(k, 3, 3)` the starts of the `segments` pieces (a warm start for another solve).
+    Status: `residual` the largest scaled residual of the shooting equations, `tolerance`
+    the largest it may be, `result` a `RESULTS` code (the root finder's, `invalid_input`,
+    or `residual_above_tolerance`), `ok` (`result` is successful), `num_steps` root-finder
+    iterations (all stages), `valid_input`.
+    """
+
+    s: Float[Array, " p"]
+    x: Float[Array, "p 3"]
+    frame: Float[Array, "p 3 3"]
+    n: Float[Array, "p 3"]
+    m: Float[Array, "p 3"]
+    n0: Float[Array, "3"]
+    m0: Float[Array, "3"]
+    force: Float[Array, "3"]
+    moment0: Float[Array, "3"]
+    end_position: Float[Array, "3"]
+    end_frame: Float[Array, "3 3"]
+    end_force: Float[Array, "3"]
+    end_moment: Float[Array, "3"]
+    node_position: Float[Array, "k 3"]
+    node_frame: Float[Array, "k 3 3"]
+    residual: Float[Array, ""]
+    result: RESULTS
+    num_steps: Int[Array, ""]
+    valid_input: Bool[Array, ""]
+    tolerance: Float[Array, ""]
+
+    @property
+    def ok(self) -> Bool[Array, ""]:
+        """Valid input, solver success and residual within tolerance."""
+        return self.result == RESULTS.successful
+
+    @property
+    def segments(self) -> int:
+        """Number of shooting pieces."""
+        return self.node_position.shape[-2]
+
+    def warm_start(self) -> WarmStart:
+        """This solution as the starting point of another solve with as many pieces."""
+        return WarmStart(self.force, self.moment0, self.node_position, self.node_frame)
+
+    def lab_wrench(self) -> tuple[Array, Array]:
+        """Lab force and moment at the saved points, `(p, 3)` each."""
+        return (
+            jnp.einsum("...ij,...j->...i", self.frame, self.n),
+            jnp.einsum("...ij,...j->...i", self.frame, self.m),
+        )
+
+
+def _observe(args: ShootingArgs, options: BoundaryValueOptions, N, M0, xs, frames, saveat, x_last, frame_last):
+    """(s, x, frame, n, m) at `saveat` (None: at s = L, from the pieces already computed)."""
+    k = options.segments
+    if saveat is None:
+        n_last = frame_last.T @ N
+        m_last = frame_last.T @ (M0 - jnp.cross(x_last - args.start.position, N))
+        return (args.length[None], x_last[None], frame_last[None], n_last[None], m_last[None])
+    piece = args.length / k
+    moments = M0[None] - jnp.cross(xs - args.start.position[None], N[None])
+
+    def one(j):
+        # Save times outside the piece are clipped to its ends (repeated save times are
+        # allowed) and never selected below.
+        local = jnp.clip(saveat - j * piece, 0.0, piece)
+        sol = options.integrate(
+            args.rod, frames[j].T @ N, frames[j].T @ moments[j], piece, args.ode_tol, frame0=frames[j], x0=xs[j],
+            saveat=local,
+        )
+        return sol.x, sol.frame, sol.n, sol.m
+
+    x, frame, n, m = per_piece(one, jnp.arange(k))
+    which = jnp.clip(jnp.floor(saveat / piece).astype(jnp.int32), 0, k - 1)
+    idx = jnp.arange(saveat.shape[0])
+    return saveat, x[which, idx], frame[which, idx], n[which, idx], m[which, idx]
+
+
+@functools.partial(jax.jit, static_argnames="guess_kind")
+def solve(rod, length, start: Clamped, end: EndCondition, guess, saveat, options: BoundaryValueOptions, guess_kind="helix"):
+    """The solve behind `solve_boundary_value` (checked inputs; never raises: read
+    `result`).  `guess`: `None` (the default guess of `guess_kind`), a `WarmStart` of as
+    many pieces, or `(n0, m0)`."""
+    dtype = float_dtype()
+    valid = jnp.isfinite(length) & (length > 0) & end.finite()
+    valid = valid & jnp.all(jnp.isfinite(start.position)) & jnp.all(jnp.isfinite(start.frame))
+    if isinstance(guess, tuple):
+        valid = valid & jnp.all(jnp.isfinite(guess[0])) & jnp.all(jnp.isfinite(guess[1]))
+    # Invalid input (under vmap): solve a harmless problem, return NaN.
+    length = jnp.where(valid, length, 1.0)
+    harmless_start = Clamped(*unloaded_state(no_gradient(rod), 0.0))
+    start = jax.tree.map(lambda a, b: jnp.where(valid, a, b), start, harmless_start)
+    end = jax.tree.map(lambda a, b: jnp.where(valid, a, b), end, end_condition(LOADED, point=jnp.zeros(3, dtype)))
+    k = options.segments
+    ell = length_scale(rod, length)
+    k_scale = stiffness_scale(rod)
+    scales = jnp.stack([ell, k_scale / ell**2, k_scale / ell])
+    ode_tol = jnp.stack([options.ode_rtol, options.ode_atol]).astype(dtype)
+    ode_tol = jnp.concatenate([ode_tol, jacobian_tolerance(ode_tol)])
+
+    y0, ref_x, ref_frame = no_gradient(initial(rod, length, start, end, guess, options, guess_kind, scales, ode_tol))
+    args = ShootingArgs(rod, length, start, end, ref_x, ref_frame, scales, ode_tol)
+    steps = jnp.zeros((), jnp.int32)
+    if options.continuation > 0:
+        frozen = no_gradient(args)
+        x_free, frame_free = (a[-1] for a in free_nodes(frozen.rod, frozen.length, frozen.start, 1))
+
+        def step(carry, t):
+            y, ref_x, ref_frame, steps = carry
+            end_t = frozen.end.homotopy(t, x_free, frame_free)
+            args_t = eqx.tree_at(lambda a: (a.end, a.ref_x, a.ref_frame), frozen, (end_t, ref_x, ref_frame))
+            y, *_, n = root(y, args_t, options)
+            y, args_t = rebase(y, args_t, k)
+            return (y, args_t.ref_x, args_t.ref_frame, steps + n), None
+
+        ts = jnp.arange(1, options.continuation, dtype=dtype) / options.continuation
+        (y0, ref_x, ref_frame, steps), _ = jax.lax.scan(step, (y0, ref_x, ref_frame, steps), ts)
+        args = eqx.tree_at(lambda a: (a.ref_x, a.ref_frame), args, (ref_x, ref_frame))
+
+    # Intermediate homotopy steps need not converge: only the last solve counts.
+    y, aux, residual, result, n = root(y0, args, options)
+    steps = steps + n
+    y, (nodes, ends) = implicit(y, aux, args, options=options)
+    (N, M0, xs, frames), (x_end, frame_end, force_end, moment_end) = nodes, ends
+    residual = jax.lax.stop_gradient(jnp.where(jnp.isfinite(residual) & valid, residual, jnp.inf))
+    tolerance = jnp.asarray(10 * options.atol, dtype)
+    result = promote(result)
+    result = RESULTS.where(
+        (result == RESULTS.successful) & ~(residual <= tolerance), RESULTS.residual_above_tolerance, result
+    )
+    result = RESULTS.where(valid, result, RESULTS.invalid_input)
+
+    out = _observe(args, options, N, M0, xs, frames, saveat, x_end[-1], frame_end[-1])
+    nan = lambda a: jnp.where(valid, a, jnp.nan)  # noqa: E731
+    return BoundaryValueSolution(
+        s=out[0],
+        x=nan(out[1]),
+        frame=nan(out[2]),
+        n=nan(out[3]),
+        m=nan(out[4]),
+        n0=nan(args.start.frame.T @ N),
+        m0=nan(args.start.frame.T @ M0),
+        force=nan(N),
+        moment0=nan(M0),
+        end_position=nan(x_end[-1]),
+        end_frame=nan(frame_end[-1]),
+        end_force=nan(force_end[-1]),
+        end_moment=nan(moment_end[-1]),
+        node_position=nan(xs),
+        node_frame=nan(frames),
+        residual=residual,
+        result=result,
+        num_steps=jnp.asarray(steps, jnp.int32),
+        valid_input=valid,
+        tolerance=tolerance,
+    )
+
+
+_HINT = "; try continuation=, more segments=, a better guess=, or throw=False to inspect `result` and `residual`"
+
+
+def solve_boundary_value(
+    rod,
+    length: ArrayLike,
+    *,
+    start: Clamped | None = None,
+    end: AbstractEnd,
+    guess: BoundaryValueSolution | tuple[ArrayLike, ArrayLike] | str | None = None,
+    saveat: ArrayLike | None = None,
+    options: BoundaryValueOptions | None = None,
+    segments: int | None = None,
+    continuation: int | None = None,
+    method: str | None = None,
+    atol: float | None = None,
+    max_steps: int | None = None,
+    ode_rtol: float | None = None,
+    ode_atol: float | None = None,
+    solver: diffrax.AbstractSolver | None = None,
+    max_ode_steps: int | None = None,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    throw: bool = True,
+) -> BoundaryValueSolution:
+    """Equilibrium of a finite rod clamped at $s = 0$ with a condition at $s = L$.
+
+    **Arguments**
+
+    - `rod`: a `Rod` (or any constitutive law usable by `solve_static`); unbatched.
+    - `length`: $L > 0$.
+    - `start`: `Clamped(position, frame)` at $s = 0$; default: the canonical placement of the
+      unloaded rod (its intrinsic helix with axis $e_z$ through the origin, see
+      `axial_ends`).
+    - `end`: `Clamped`, `Loaded` or `Tweezer` (or their uniform form `EndCondition`);
+      `axial_ends` builds the common spring and tweezer conditions.
+    - `guess`: `None` (default) -- the uniform helix with the end's axial extension and
+      rotation (or force and rotation) from the bulk equations, exact for a `Loaded` end
+      about a fixed point; `"zero"` -- the unloaded rod; a `BoundaryValueSolution` (warm
+      start, e.g. the previous point of a curve); or a pair `(n0, m0)` of start wrenches in
+      the director frame.  The rotation of a frame condition is known only modulo a full
+      turn: to turn an end by more than half a turn from the guess, continue in the
+      rotation (`rotation_response`) or warm-start.
+    - `saveat`: increasing arc lengths in $[0, L]$ at which to return the centreline, frame
+      and wrench (default: $s = L$ only).
+    - `options`: a `BoundaryValueOptions` (shooting pieces, homotopy steps, root finder,
+      tolerances, integrator, adjoint; default `BoundaryValueOptions()`); each of
+      `segments`, `continuation`, `method`, `atol`, `max_steps`, `ode_rtol`, `ode_atol`,
+      `solver`, `max_ode_steps`, `adjoint` given here replaces that field.  Use more
+      `segments` for long rods in spatially unstable states (`wrench_growth_rate`).
+      Derivatives (`jax.jvp`/`jax.jacfwd`; `jax.grad` with `adjoint=diffrax.DirectAdjoint()`)
+      are those of the implicit function theorem on the shooting equations.
+    - `throw`: raise `SolverError` when the solve fails (an equinox runtime error inside
+      `jax.jit`); with `throw=False` read `ok`, `result`, `residual` -- use it under
+      `jax.vmap`, where an invalid point gives NaN fields and `valid_input = False` without
+      spoiling the batch.
+
+    **Errors.** Bad shapes, non-finite concrete values, `length <= 0`, a frame that is not a
+    rotation, bad options, an unknown `guess` raise `ValueError`.
+
+    **Example**
+
+    ```python
+    rod = helixrod.Rod(1.0, 1.0, 0.77, uhat=(0.0, 1.0, 0.3))       # a helical spring
+    start, end = helixrod.axial_ends(rod, 30.0, extension=12.0, rotation=30 * 1.044)
+    sol = helixrod.solve_boundary_value(rod, 30.0, start=start, end=end, segments=4,
+                                        saveat=jnp.linspace(0, 30, 200))
+    sol.force, sol.x            # reaction force; centreline
+    ```
+    """
+    owner = "solve_boundary_value"
+    options = with_settings(
+        options, segments=segments, continuation=continuation, method=method, atol=atol, max_steps=max_steps,
+        ode_rtol=ode_rtol, ode_atol=ode_atol, solver=solver, max_ode_steps=max_ode_steps, adjoint=adjoint,
+    )
+    check_one_rod(rod, owner)
+    if not isinstance(end, AbstractEnd):
+        raise ValueError(f"{owner}: end must be Clamped, Loaded or Tweezer, got {type(end).__name__}")
+    if start is None:
+        start = Clamped(*unloaded_state(rod, 0.0))
+    if not isinstance(start, Clamped):
+        raise ValueError(f"{owner}: start must be Clamped, got {type(start).__name__}")
+    end = end.condition()
+    for name, cond in (("start", start), ("end", end)):
+        if any(jnp.ndim(leaf) > 2 or (jnp.ndim(leaf) == 2 and jnp.shape(leaf) != (3, 3)) for leaf in jax.tree.leaves(cond)):
+            raise ValueError(f"{owner}: {name} must be unbatched (jax.vmap over conditions)")
+    length = finite_scalar(length, "length", owner, positive=True)
+    guess_kind = "helix"
+    if isinstance(guess, str):
+        if guess not in ("helix", "zero"):
+            raise ValueError(f"{owner}: guess must be None, 'helix', 'zero', a solution or (n0, m0); got {guess!r}")
+        guess_kind, guess = guess, None
+    elif isinstance(guess, BoundaryValueSolution):
+        guess = guess.warm_start() if guess.segments == options.segments else (guess.n0, guess.m0)
+    elif guess is not None:
+        try:
+            n0, m0 = (jnp.asarray(g, float_dtype()) for g in guess)
+        except (TypeError, ValueError):
+            raise ValueError(f"{owner}: guess must be None, 'helix', 'zero', a solution or (n0, m0)") from None
+        if n0.shape != (3,) or m0.shape != (3,):
+            raise ValueError(f"{owner}: guess (n0, m0) needs shapes (3,), got {n0.shape}, {m0.shape}")
+        if is_concrete(n0, m0) and not (np.all(np.isfinite(np.asarray(n0))) and np.all(np.isfinite(np.asarray(m0)))):
+            raise ValueError(f"{owner}: guess (n0, m0) must be finite")
+        guess = (n0, m0)
+    if saveat is not None:
+        saveat = increasing_within(saveat, length, "saveat", owner, slack=1e-12)
+    sol = solve(rod, length, start, end, guess, saveat, options, guess_kind)
+    return raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _HINT) if throw else sol

@@ -1,0 +1,85 @@
+"""Bootstrap replicates of a fit: resampled or redrawn data, refitted in one vmapped call."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from .._rod import PARAMETER_NAMES, rod_vector
+from .._status import RESULTS, raise_if_failed
+from ._pipeline import StiffnessFit, cost_at, minimise
+from ._symmetry import closest_in_orbit
+
+KINDS = ("cases", "parametric")
+
+
+class Bootstrap(eqx.Module):
+    """Bootstrap replicates of a fit.  `samples`: mapping name -> array (n,) (replicates
+    that failed to converge are NaN); `result` per replicate (a `RESULTS` code) and `ok`;
+    `std` by name; `interval(level)` percentile intervals by name.  Replicates are mapped to
+    the member of their symmetry orbit nearest the original fit, so a discrete symmetry
+    never splits the distribution."""
+
+    names: tuple[str, ...] = eqx.field(static=True)
+    samples: dict
+    result: RESULTS
+    kind: str = eqx.field(static=True)
+
+    @property
+    def ok(self) -> Array:
+        """Whether each replicate converged (to a finite cost)."""
+        return self.result == RESULTS.successful
+
+    @property
+    def std(self) -> dict:
+        """Standard deviation of the replicates (converged ones) by parameter name."""
+        return {n: jnp.asarray(np.nanstd(np.asarray(v), ddof=1)) for n, v in self.samples.items()}
+
+    def interval(self, level: float = 0.95) -> dict[str, tuple[float, float]]:
+        """Percentile interval `(lower, upper)` holding `level` of the replicates, by name."""
+        lo, hi = 50 * (1 - level), 50 * (1 + level)
+        return {n: (float(np.nanpercentile(v, lo)), float(np.nanpercentile(v, hi))) for n, v in self.samples.items()}
+
+
+@eqx.filter_jit
+def _refits(z0, models, param, solver, max_steps: int):
+    def one(model):
+        z, result, _ = minimise(z0, model, param, solver, max_steps)
+        finite = jnp.isfinite(cost_at(z, model, param))
+        result = RESULTS.where(finite | (result != RESULTS.successful), result, RESULTS.cost_not_finite)
+        return param.full(param.physical(z)), result
+
+    return jax.vmap(one)(models)
+
+
+def bootstrap(data, fit: StiffnessFit, n: int, key: Array, *, kind: str = "cases", throw: bool = False) -> Bootstrap:
+    """`n` bootstrap refits of `fit` on resampled `data`, vmapped, each started at `fit`.
+
+    `kind="cases"` resamples data points with replacement (no trust in sigma needed);
+    `"parametric"` redraws the observations around the fitted predictions with the data's
+    sigmas.  Same model, options and solver as `fit` (helix data).  Returns a `Bootstrap`;
+    `throw=True` raises `SolverError` if a replicate fails (default: it is NaN and flagged).
+    """
+    if fit.problem is None:
+        raise ValueError("bootstrap needs a fit from fit_stiffness (not fit_stiffness_linear)")
+    if kind not in KINDS:
+        raise ValueError(f"kind must be 'cases' or 'parametric', got {kind!r}")
+    if n < 2:
+        raise ValueError("n must be >= 2")
+    problem = fit.problem
+    model = problem.model.with_data(data)
+    param = problem.parameterisation
+    models = model.replicates(kind, int(n), key, fit.predicted)
+    p_fit = np.asarray(rod_vector(fit.rod))
+    z0 = jnp.asarray(param.internal(p_fit))
+    p, results = _refits(z0, models, param, problem.solver, problem.max_steps)
+    p = np.asarray(p)
+    ok = np.asarray(results == RESULTS.successful)
+    p = np.stack([closest_in_orbit(pi, p_fit, param, model.frame_observed) for pi in p])
+    p[~ok] = np.nan
+    samples = {name: jnp.asarray(p[:, PARAMETER_NAMES.index(name)]) for name in fit.names}
+    boot = Bootstrap(names=fit.names, samples=samples, result=results, kind=kind)
+    return raise_if_failed(boot, boot.result, "bootstrap: replicates did not converge") if throw else boot

@@ -1,0 +1,403 @@
+"""Forward models of `fit_stiffness`: from a rod to the normalised residuals of one kind of
+data and the predictions of what was observed.
+
+A model holds its data (arrays, traced) and its configuration (static fields), so one
+compilation serves every data set of the same shapes and every refit.  `forward_model(data,
+**options)` finds the model of a data type; a new kind of data adds one model class,
+registered with `@forward_model.register`, and nothing else.
+
+- `HelixModel` (`HelixData`): for each measured helix $(\\kappa_i, \\tau_i)$ `helix_equilibria`
+  gives every register and its axial force and moment $(F_{ij}, M_{ij})$; one register per
+  point is chosen (`branch`) and the residuals are $((F_{ij} - F_i)/\\sigma_{F,i},
+  (M_{ij} - M_i)/\\sigma_{M,i})$.  The choice is locally constant, and the register itself
+  is differentiated by the implicit function theorem (the custom JVP of `register_roots`),
+  so the residual is smooth wherever the chosen register is simple.
+- `EndResponseModel` (`EndResponseData`): each point is one boundary-value solve of the rod
+  at the data's two controls (`axial_response`, independent points from the bulk-helix
+  guess); residuals are the two measured responses minus the predictions, over sigma.
+- `ShapeModel` (`ShapeData`): one solve per image, saved at the sampled arc lengths;
+  residuals are the centreline coordinates minus the points, over sigma.
+
+Derivatives of the finite-rod models are forward mode throughout (one tangent per free
+parameter through the implicit function theorem of the shooting root and through the
+flows, diffrax `ForwardMode`), so they take least-squares solvers only.  No frame symmetry
+applies to them: the clamp fixes the director frame in the lab.  A clamped-clamped shape
+without a measured load does not fix the scale of $K$ (scaling $K$ scales the wrench, not
+the shape): the identifiability report then shows that null direction.
+"""
+
+from __future__ import annotations
+
+import abc
+import functools
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from .._bvp import AXIAL_CONTROLS, AXIAL_OBSERVABLES, BoundaryValueOptions, Clamped, EndCondition
+from .._bvp import axial_response, solve_boundary_value
+from .._equilibria import helix_equilibria
+from ._finite_data import EndResponseData, ShapeData
+from ._helix_data import HelixData
+
+BRANCHES = ("nearest", "stable", "min-energy")
+
+
+class AbstractForwardModel(eqx.Module):
+    """A rod -> residuals map of one kind of data, with what the fit needs to start it."""
+
+    #: Whether the model's derivatives are forward mode only (least-squares solvers only).
+    forward_mode_only: ClassVar[bool]
+    #: Default number of starts of `fit_stiffness`.
+    default_starts: ClassVar[int]
+
+    @abc.abstractmethod
+    def residuals(self, rod) -> tuple[Array, dict[str, Array]]:
+        """The normalised residuals `(m,)` of `rod`, and its predictions of the observed
+        quantities by name (traced; `jit`, `vmap` and `jacfwd` safe)."""
+
+    @property
+    @abc.abstractmethod
+    def frame_observed(self) -> bool:
+        """Whether the data fix the director frame (then no frame symmetry applies)."""
+
+    @abc.abstractmethod
+    def isotropic_start(self, uhat) -> tuple[float, float]:
+        """Bending and twisting stiffness $(B, C)$ of an isotropic rod with intrinsic twist
+        `uhat` that roughly fits the data: the default first start."""
+
+    @abc.abstractmethod
+    def twist_scale(self, p0) -> float:
+        """The unit in which the fit measures twists (`uhat`), from the start vector `p0`."""
+
+    @abc.abstractmethod
+    def with_data(self, data) -> "AbstractForwardModel":
+        """The model of the same kind and configuration for other data."""
+
+    @abc.abstractmethod
+    def replicates(self, kind: str, n: int, key, predicted: dict[str, Array]) -> "AbstractForwardModel":
+        """`n` bootstrap replicates of the data, stacked on a leading axis: resampled
+        points (`kind="cases"`) or observations redrawn around `predicted` with the data's
+        sigmas (`"parametric"`)."""
+
+
+@functools.singledispatch
+def forward_model(data, **options) -> AbstractForwardModel:
+    """The forward model of `data` with the model `options` (`None` values take the
+    model's defaults); `ValueError` for data of no registered type."""
+    types = [t.__name__ for t in forward_model.registry if t is not object]
+    names = ", ".join(types[:-1]) + f" or {types[-1]}"
+    raise ValueError(f"data must be a {names}, got {type(data).__name__}")
+
+
+def _only_defaults(data, options):
+    given = [name for name, value in options.items() if value is not None]
+    if given:
+        raise ValueError(f"fit_stiffness: {given[0]}= applies to HelixData only")
+
+
+# -- helices ----------------------------------------------------------------------------------
+
+
+class HelixModel(AbstractForwardModel):
+    """Axial force and moment (and the register, if fitted) of measured uniform helices."""
+
+    force: Array
+    moment: Array
+    kappa: Array
+    tau: Array
+    force_sigma: Array
+    moment_sigma: Array
+    observed_register: Array | None  # (`register` would shadow ABCMeta.register)
+    register_sigma: Array | None
+    kappa_sigma: Array | None
+    tau_sigma: Array | None
+    kappa_tau_correlation: Array | None
+    branch: str = eqx.field(static=True)
+    use_register: bool = eqx.field(static=True)
+    errors_in_variables: bool = eqx.field(static=True)
+    forward_mode_only: ClassVar[bool] = False
+    default_starts: ClassVar[int] = 32
+
+    @property
+    def frame_observed(self) -> bool:
+        return self.use_register
+
+    def residuals(self, rod):
+        eq = helix_equilibria(rod, self.kappa, self.tau)
+        sF, sM = self.force_sigma[:, None], self.moment_sigma[:, None]
+        errF = eq.force - self.force[:, None]
+        errM = eq.moment - self.moment[:, None]
+        if self.errors_in_variables:
+            rF, rM = self._whitened(rod, errF, errM, sF, sM)
+        else:
+            rF, rM = errF / sF, errM / sM
+        residuals = [rF, rM]
+        if self.use_register:
+            dphi = jnp.remainder(eq.phi - self.observed_register[:, None] + jnp.pi, 2 * jnp.pi) - jnp.pi
+            if self.register_sigma is not None:
+                rphi = dphi / self.register_sigma[:, None]
+                residuals.append(rphi)
+                distance = rF**2 + rM**2 + rphi**2
+            else:
+                distance = dphi**2
+        else:
+            distance = rF**2 + rM**2
+        distance = jax.lax.stop_gradient(jnp.where(eq.valid, distance, jnp.inf))
+        if self.branch == "min-energy":
+            slot = jnp.zeros(self.kappa.shape, jnp.int32)
+        else:
+            if self.branch == "stable":
+                stable = jnp.where(eq.stable, distance, jnp.inf)
+                # No stable register (a continuum is neutral): fall back to all valid ones.
+                distance = jnp.where(jnp.any(eq.stable, axis=-1, keepdims=True), stable, distance)
+            slot = jnp.argmin(distance, axis=-1)
+        take = lambda x: jnp.take_along_axis(x, slot[:, None], axis=1)[:, 0]  # noqa: E731
+        predicted = {"force": take(eq.force), "moment": take(eq.moment), "register": take(eq.phi), "slot": slot}
+        return jnp.concatenate([take(r) for r in residuals]), predicted
+
+    def _whitened(self, rod, errF, errM, sF, sM):
+        # Effective variance: first-order propagation of the errors of kappa and tau (with
+        # their correlation) into the 2x2 covariance of the model's (F, M) at each register,
+        # added to that of the observed (F, M); the residual pair is whitened by its
+        # Cholesky factor (Orear, Am. J. Phys. 50 (1982) 912, in two dimensions).  As in the
+        # effective-variance method the weights are held fixed in the Jacobian (no
+        # gradient through the propagated covariance), which also spares XLA a second
+        # derivative of the register solver.
+        def wrench(k, t):
+            eq = helix_equilibria(jax.lax.stop_gradient(rod), k, t)
+            return eq.force, eq.moment
+
+        # One linearisation, applied to both directions (one more trace of the solver, not two).
+        _, linear = jax.linearize(wrench, self.kappa, self.tau)
+        ones, zeros = jnp.ones_like(self.kappa), jnp.zeros_like(self.kappa)
+        dF_dk, dM_dk = linear(ones, zeros)
+        dF_dt, dM_dt = linear(zeros, ones)
+        ks, ts = self.kappa_sigma[:, None], self.tau_sigma[:, None]
+        ckt = self.kappa_tau_correlation[:, None] * ks * ts
+
+        def propagated(a_k, a_t, b_k, b_t):
+            return a_k * b_k * ks * ks + (a_k * b_t + a_t * b_k) * ckt + a_t * b_t * ts * ts
+
+        cFF = sF**2 + propagated(dF_dk, dF_dt, dF_dk, dF_dt)
+        cMM = sM**2 + propagated(dM_dk, dM_dt, dM_dk, dM_dt)
+        cFM = propagated(dF_dk, dF_dt, dM_dk, dM_dt)
+        l11 = jnp.sqrt(cFF)
+        l21 = cFM / l11
+        l22 = jnp.sqrt(jnp.maximum(cMM - l21 * l21, sM**2 * 1e-12))
+        rF = errF / l11
+        return rF, (errM - l21 * rF) / l22
+
+    def isotropic_start(self, uhat):
+        """Weighted linear least squares for an isotropic rod (K1 = K2 = B, K3 = C, no
+        coupling) with intrinsic twist `uhat`.  Its energy-minimising register puts the
+        bending of the helix along the intrinsic one, $(\\sin\\varphi, \\cos\\varphi) \\parallel
+        (\\hat u_1, \\hat u_2)$; with $\\rho = |(\\hat u_1, \\hat u_2)|$ there
+        $F = |u|\\,(C(\\tau - \\hat u_3) - B\\tau(\\kappa - \\rho)/\\kappa)$ and
+        $M = (B(\\kappa - \\rho)\\kappa + C(\\tau - \\hat u_3)\\tau)/|u|$ (Love's formulas for
+        $\\rho = 0$), linear in B and C."""
+        u1, u2, u3 = (float(x) for x in uhat)
+        rho = float(np.hypot(u1, u2))
+        k, t = np.asarray(self.kappa), np.asarray(self.tau)
+        norm = np.hypot(k, t)
+        bend = (k - rho) / k
+        sF, sM = np.asarray(self.force_sigma), np.asarray(self.moment_sigma)
+        A = np.concatenate([
+            np.stack([-norm * t * bend, norm * (t - u3)], 1) / sF[:, None],
+            np.stack([k * k * bend / norm, (t - u3) * t / norm], 1) / sM[:, None],
+        ])
+        b = np.concatenate([np.asarray(self.force) / sF, np.asarray(self.moment) / sM])
+        (B, C), *_ = np.linalg.lstsq(A, b, rcond=None)
+        # A crude floor: the data may favour a negative value of a poorly seen stiffness.
+        floor = max(abs(B), abs(C), 1e-300) * 1e-2
+        return max(B, floor), max(C, floor)
+
+    def twist_scale(self, p0):
+        return float(np.median(np.hypot(np.asarray(self.kappa), np.asarray(self.tau))))
+
+    def with_data(self, data):
+        if not isinstance(data, HelixData):
+            raise ValueError(f"a fit to HelixData needs HelixData, got {type(data).__name__}")
+        return forward_model(
+            data, branch=self.branch, use_register=self.use_register, errors_in_variables=self.errors_in_variables
+        )
+
+    def replicates(self, kind, n, key, predicted):
+        size = self.kappa.shape[0]
+        if kind == "cases":  # every array of the model is per point
+            idx = jax.random.randint(key, (n, size), 0, size)
+            return jax.tree.map(lambda a: a[idx], self)
+        batch = jax.tree.map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), self)
+        kf, km = jax.random.split(key)
+        force = predicted["force"][None] + self.force_sigma[None] * jax.random.normal(kf, (n, size))
+        moment = predicted["moment"][None] + self.moment_sigma[None] * jax.random.normal(km, (n, size))
+        return eqx.tree_at(lambda m: (m.force, m.moment), batch, (force, moment))
+
+
+@forward_model.register
+def _(data: HelixData, *, branch=None, use_register=None, errors_in_variables=None) -> HelixModel:
+    branch = "nearest" if branch is None else branch
+    if branch not in BRANCHES:
+        raise ValueError(f"branch must be one of {BRANCHES}, got {branch!r}")
+    if use_register is None:
+        use_register = data.register_sigma is not None
+    if use_register and data.register is None:
+        raise ValueError("use_register=True but the data have no register column")
+    errors_in_variables = bool(errors_in_variables)
+    if errors_in_variables and data.kappa_sigma is None and data.tau_sigma is None:
+        raise ValueError("errors_in_variables=True needs kappa_sigma and/or tau_sigma in the data")
+    zero = jnp.zeros_like(data.kappa)
+    either = lambda x: zero if x is None else x  # noqa: E731
+    return HelixModel(
+        force=data.force,
+        moment=data.moment,
+        kappa=data.kappa,
+        tau=data.tau,
+        force_sigma=data.force_sigma,
+        moment_sigma=data.moment_sigma,
+        observed_register=data.register if use_register else None,
+        register_sigma=data.register_sigma if use_register else None,
+        kappa_sigma=either(data.kappa_sigma) if errors_in_variables else None,
+        tau_sigma=either(data.tau_sigma) if errors_in_variables else None,
+        kappa_tau_correlation=either(data.kappa_tau_correlation) if errors_in_variables else None,
+        branch=branch,
+        use_register=bool(use_register),
+        errors_in_variables=errors_in_variables,
+    )
+
+
+# -- finite rods ------------------------------------------------------------------------------
+
+
+class EndResponseModel(AbstractForwardModel):
+    """The two measured end responses of a finite rod at its two controls."""
+
+    length: Array
+    values: Array  # (n, 4): force, moment, extension, rotation (controls and observations)
+    sigma: Array  # (n, 2): of the responses
+    controls: str = eqx.field(static=True)
+    segments: int = eqx.field(static=True)
+    forward_mode_only: ClassVar[bool] = True
+    default_starts: ClassVar[int] = 1
+
+    @property
+    def frame_observed(self) -> bool:
+        return True
+
+    def residuals(self, rod):
+        test = AXIAL_CONTROLS[self.controls]
+        given = {AXIAL_OBSERVABLES[i]: self.values[:, i] for i in test.controls}
+        curve = axial_response(
+            rod, self.length, **given, mode="independent", rotation_hint=self.values[:, 3], bulk=False,
+            options=BoundaryValueOptions(segments=self.segments),
+        )
+        predicted = {AXIAL_OBSERVABLES[i]: getattr(curve, AXIAL_OBSERVABLES[i]) for i in test.responses}
+        prediction = jnp.stack(list(predicted.values()), -1)
+        observed = self.values[:, list(test.responses)]
+        return ((prediction - observed) / self.sigma).T.reshape(-1), predicted
+
+    def isotropic_start(self, uhat):
+        """$K = \\mathrm{diag}(B, B, C)$ from the bulk-helix equations at each point (end
+        effects neglected): with $|u| = \\Theta/L$, $u_3 = h\\Theta/L^2$, the multipliers
+        $\\mu_2 = F/|u|$, $\\mu_1 = (M - \\mu_2 u_3/|u|)/|u|$ and the register aligned with
+        $\\hat u$, $B(\\kappa - \\hat\\kappa) = \\mu_1\\kappa$ and $C(u_3 - \\hat u_3) = \\mu_1 u_3 + \\mu_2$:
+        linear least squares for $B$ and $C$; (1, 1) where that is ill-posed."""
+        L = float(self.length)
+        F, M, h, theta = np.asarray(self.values).T
+        norm = theta / L
+        u3 = h * theta / L**2
+        kappa = np.sqrt(np.maximum(norm**2 - u3**2, 0.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mu2 = F / norm
+            mu1 = (M - mu2 * u3 / norm) / norm
+        kappa_hat = float(np.hypot(uhat[0], uhat[1]))
+        out = []
+        for a, b in ((kappa - kappa_hat, mu1 * kappa), (u3 - uhat[2], mu1 * u3 + mu2)):
+            good = np.isfinite(a) & np.isfinite(b)
+            denom = float(np.sum(a[good] ** 2))
+            if not good.any() or denom <= 0:
+                return 1.0, 1.0
+            out.append(float(np.sum(a[good] * b[good]) / denom))
+        B, C = out
+        if not (np.isfinite(B) and np.isfinite(C)) or B <= 0 or C <= 0:
+            return 1.0, 1.0
+        return B, C
+
+    def twist_scale(self, p0):
+        return _twist_scale(p0, self.length)
+
+    def with_data(self, data):
+        return forward_model(data)
+
+    def replicates(self, kind, n, key, predicted):
+        raise ValueError("bootstrap supports fits to HelixData only (finite-rod fits: resample and refit)")
+
+
+@forward_model.register
+def _(data: EndResponseData, **options) -> EndResponseModel:
+    _only_defaults(data, options)
+    return EndResponseModel(data.length, data.values, data.sigma, data.controls, data.segments)
+
+
+class ShapeModel(AbstractForwardModel):
+    """Centreline points of a finite rod under known end conditions, one solve per image."""
+
+    length: Array
+    s: Array
+    points: Array  # (m, p, 3)
+    sigma: Array  # (m, p)
+    start: Clamped
+    end: EndCondition  # stacked over the m images
+    segments: int = eqx.field(static=True)
+    forward_mode_only: ClassVar[bool] = True
+    default_starts: ClassVar[int] = 1
+
+    @property
+    def frame_observed(self) -> bool:
+        return True
+
+    def residuals(self, rod):
+        options = BoundaryValueOptions(segments=self.segments)
+
+        def one(end):
+            sol = solve_boundary_value(
+                rod, self.length, start=self.start, end=end, saveat=self.s, options=options, throw=False
+            )
+            return jnp.where(sol.ok, sol.x, jnp.nan)
+
+        prediction = jax.vmap(one)(self.end)
+        return ((prediction - self.points) / self.sigma[..., None]).reshape(-1), {"points": prediction}
+
+    def isotropic_start(self, uhat):
+        """$B = C$ = a stiffness that bends the rod by about a radian under the end loads:
+        $|M|L + |F|L^2/2$ (1 when no load is prescribed)."""
+        L = float(self.length)
+        force = np.max(np.linalg.norm(np.asarray(self.end.force), axis=-1))
+        moment = np.max(np.linalg.norm(np.asarray(self.end.moment), axis=-1))
+        scale = moment * L + 0.5 * force * L**2
+        scale = float(scale) if scale > 0 and np.isfinite(scale) else 1.0
+        return scale, scale
+
+    def twist_scale(self, p0):
+        return _twist_scale(p0, self.length)
+
+    def with_data(self, data):
+        return forward_model(data)
+
+    def replicates(self, kind, n, key, predicted):
+        raise ValueError("bootstrap supports fits to HelixData only (finite-rod fits: resample and refit)")
+
+
+def _twist_scale(p0, length):
+    u_norm = float(np.linalg.norm(np.asarray(p0)[5:]))
+    return u_norm if u_norm > 0 else 1.0 / float(length)
+
+
+@forward_model.register
+def _(data: ShapeData, **options) -> ShapeModel:
+    _only_defaults(data, options)
+    return ShapeModel(data.length, data.s, data.points, data.sigma, data.start, data.end, data.segments)

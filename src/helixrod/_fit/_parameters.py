@@ -1,0 +1,195 @@
+"""Which parameters a fit frees, and the internal coordinates its optimiser works in.
+
+The optimiser works in dimensionless internal coordinates that keep $K$ positive definite:
+$\\log K_1$, $\\log K_2$ and, with $K_3$ free, $\\log S$ with the Schur complement
+$S = K_3 - K_{13}^2/K_1 - K_{23}^2/K_2$ (a Cholesky factor with log diagonal; $K_{13}$,
+$K_{23}$ enter linearly); with $K_3$ fixed the normalised couplings $(K_{13}/\\sqrt{K_1K_3},
+K_{23}/\\sqrt{K_2K_3})$ are mapped into the unit disc.  Stiffnesses are measured in units of
+`k_scale`, twists in units of `u_scale`.  Standard errors and the identifiability report are
+computed in the physical parameters at the solution.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from .._misc import float_dtype
+from .._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
+
+STIFFNESS_NAMES = PARAMETER_NAMES[:5]
+TWIST_NAMES = PARAMETER_NAMES[5:]
+
+
+class Parameterisation(eqx.Module):
+    """The free parameters of a fit (`free`, in `PARAMETER_NAMES` order), the values of the
+    fixed ones, and the scales of the internal coordinates.  The names are static (one
+    compilation per choice), the values traced (refits of other values reuse it)."""
+
+    free: tuple[str, ...] = eqx.field(static=True)
+    fixed_names: tuple[str, ...] = eqx.field(static=True)
+    fixed_values: Array
+    k_scale: Array
+    u_scale: Array
+
+    def __init__(self, fixed: Mapping[str, float], k_scale: float, u_scale: float):
+        dtype = float_dtype()
+        self.free = tuple(n for n in PARAMETER_NAMES if n not in fixed)
+        self.fixed_names = tuple(n for n in PARAMETER_NAMES if n in fixed)
+        self.fixed_values = jnp.asarray([float(fixed.get(n, 0.0)) for n in PARAMETER_NAMES], dtype)
+        self.k_scale = jnp.asarray(k_scale, dtype)
+        self.u_scale = jnp.asarray(u_scale, dtype)
+
+    @property
+    def fixed(self) -> dict[str, float]:
+        """The fixed parameters by name (concrete values)."""
+        values = np.asarray(self.fixed_values)
+        return {n: float(values[PARAMETER_NAMES.index(n)]) for n in self.fixed_names}
+
+    def scales(self, names) -> np.ndarray:
+        """The scale of each parameter in `names` (`k_scale` or `u_scale`)."""
+        k, u = float(self.k_scale), float(self.u_scale)
+        return np.array([k if n in STIFFNESS_NAMES else u for n in names])
+
+    def _fixed_lookup(self):
+        return {n: self.fixed_values[PARAMETER_NAMES.index(n)] for n in self.fixed_names}
+
+    def full(self, q) -> Array:
+        """The physical 8-vector from the free physical values `q` (in `free` order)."""
+        fixed = self._fixed_lookup()
+        lookup = dict(zip(self.free, [q[i] for i in range(len(self.free))]))
+        dtype = float_dtype()
+        return jnp.stack([jnp.asarray(lookup[n] if n in lookup else fixed[n], dtype) for n in PARAMETER_NAMES])
+
+    def rod(self, q) -> Rod:
+        """The rod with free physical values `q` (no positive-definiteness check: the
+        internal coordinates guarantee it)."""
+        return rod_from_vector(self.full(q))
+
+    def physical(self, z) -> Array:
+        """The free physical values from internal coordinates `z`."""
+        fixed = self._fixed_lookup()
+        zs = dict(zip(self.free, [z[i] for i in range(len(self.free))]))
+        ks, us = self.k_scale, self.u_scale
+        val = {}
+        for n in ("K1", "K2"):
+            val[n] = ks * jnp.exp(jnp.clip(zs[n], -40.0, 40.0)) if n in zs else fixed[n]
+        K1, K2 = val["K1"], val["K2"]
+        if "K3" in zs:
+            for n in ("K13", "K23"):
+                val[n] = ks * zs[n] if n in zs else fixed[n]
+            val["K3"] = ks * jnp.exp(jnp.clip(zs["K3"], -40.0, 40.0)) + val["K13"] ** 2 / K1 + val["K23"] ** 2 / K2
+        else:
+            K3 = fixed["K3"]
+            free_c = [n for n in ("K13", "K23") if n in zs]
+            diag = {"K13": K1, "K23": K2}
+            room = 1.0
+            for n in ("K13", "K23"):
+                if n not in zs:
+                    val[n] = fixed[n]
+                    room = room - fixed[n] ** 2 / (diag[n] * K3)
+            room = jnp.sqrt(jnp.maximum(room, 1e-12))
+            if free_c:
+                g = room * _disc(jnp.stack([zs[n] for n in free_c]))
+                for i, n in enumerate(free_c):
+                    val[n] = g[i] * jnp.sqrt(diag[n] * K3)
+            val["K3"] = K3
+        for n in TWIST_NAMES:
+            val[n] = us * zs[n] if n in zs else fixed[n]
+        return jnp.stack([jnp.asarray(val[n], float_dtype()) for n in self.free])
+
+    def rod_at(self, z) -> Rod:
+        """The rod at internal coordinates `z`."""
+        return self.rod(self.physical(z))
+
+    def internal(self, p_full) -> np.ndarray:
+        """Inverse of `physical` from a full physical vector (NumPy; for initial values)."""
+        p = dict(zip(PARAMETER_NAMES, np.asarray(p_full, float)))
+        ks, us = float(self.k_scale), float(self.u_scale)
+        z = {}
+        for n in ("K1", "K2"):
+            z[n] = np.log(p[n] / ks)
+        if "K3" in self.free:
+            z["K13"], z["K23"] = p["K13"] / ks, p["K23"] / ks
+            schur = p["K3"] - p["K13"] ** 2 / p["K1"] - p["K23"] ** 2 / p["K2"]
+            z["K3"] = np.log(max(schur, 1e-12 * p["K3"]) / ks)
+        else:
+            free_c = [n for n in ("K13", "K23") if n in self.free]
+            diag = {"K13": p["K1"], "K23": p["K2"]}
+            room = 1.0 - sum(p[n] ** 2 / (diag[n] * p["K3"]) for n in ("K13", "K23") if n not in self.free)
+            room = np.sqrt(max(room, 1e-12))
+            g = np.array([p[n] / np.sqrt(diag[n] * p["K3"]) / room for n in free_c])
+            norm2 = float(np.sum(g * g))
+            if norm2 >= 1:
+                g = g * 0.99 / np.sqrt(norm2)
+                norm2 = 0.99**2
+            w = g / np.sqrt(1 - norm2)
+            for i, n in enumerate(free_c):
+                z[n] = w[i]
+        for n in TWIST_NAMES:
+            z[n] = p[n] / us
+        return np.array([z[n] for n in self.free])
+
+    def starts(self, z_base, n: int, key) -> np.ndarray:
+        """`n` starts: `z_base`, then random perturbations suited to each coordinate
+        (log-normal stiffnesses, normal couplings and twists)."""
+        spread = np.array([{"K1": 0.7, "K2": 0.7, "K3": 0.5}.get(name, 0.5) for name in self.free])
+        noise = np.array(jax.random.normal(key, (n, len(self.free))))
+        noise[0] = 0.0
+        return z_base[None, :] + spread * noise
+
+
+def _disc(w):
+    return w / jnp.sqrt(1.0 + jnp.sum(w * w))
+
+
+def resolve_fixed(uhat, fit_uhat: bool, fix) -> dict[str, float]:
+    """The fixed parameters by name from `uhat=`, `fit_uhat=` and `fix=` (checked)."""
+    fixed = {}
+    if fix:
+        for name, value in dict(fix).items():
+            if name not in PARAMETER_NAMES:
+                raise ValueError(f"fix: unknown parameter {name!r}; names are {PARAMETER_NAMES}")
+            fixed[name] = float(value)
+    if fit_uhat and uhat is not None:
+        raise ValueError("give either uhat= (fixed intrinsic twist) or fit_uhat=True, not both")
+    if not fit_uhat:
+        uh = np.zeros(3) if uhat is None else np.asarray(uhat, float)
+        if uh.shape != (3,) or not np.all(np.isfinite(uh)):
+            raise ValueError(f"uhat must be three finite numbers, got {uhat!r}")
+        for i, n in enumerate(TWIST_NAMES):
+            fixed.setdefault(n, float(uh[i]))
+    for n in ("K1", "K2", "K3"):
+        if n in fixed and not fixed[n] > 0:
+            raise ValueError(f"fix: {n} must be > 0, got {fixed[n]}")
+    if "K3" in fixed and "K1" in fixed and "K2" in fixed:
+        schur = fixed["K3"] - fixed.get("K13", 0.0) ** 2 / fixed["K1"] - fixed.get("K23", 0.0) ** 2 / fixed["K2"]
+        if "K13" in fixed and "K23" in fixed and schur <= 0:
+            raise ValueError("fix: the fixed stiffnesses are not positive definite")
+    if all(n in fixed for n in PARAMETER_NAMES):
+        raise ValueError("nothing to fit: every parameter is fixed")
+    return fixed
+
+
+def start_vector(init, fixed: dict[str, float], default) -> np.ndarray:
+    """Full physical vector from `init` (a Rod, a mapping or None) over `default`, with the
+    fixed values imposed; `ValueError` unless it is a valid rod."""
+    p = dict(zip(PARAMETER_NAMES, default))
+    if isinstance(init, Rod):
+        p.update(zip(PARAMETER_NAMES, np.asarray(rod_vector(init), float)))
+    elif isinstance(init, Mapping):
+        for n, v in init.items():
+            if n not in PARAMETER_NAMES:
+                raise ValueError(f"init: unknown parameter {n!r}")
+            p[n] = float(v)
+    elif init is not None:
+        raise ValueError("init must be a Rod, a mapping of parameter values, or None")
+    p.update(fixed)
+    v = np.array([p[n] for n in PARAMETER_NAMES])
+    rod_from_vector(v, checked=True)  # raises ValueError if not positive definite
+    return v

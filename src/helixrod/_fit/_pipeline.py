@@ -1,0 +1,377 @@
+"""`fit_stiffness`: one pipeline for every kind of data.
+
+data -> forward model (`forward_model`) -> parameterisation (which parameters are free, in
+which internal coordinates) -> starts -> minimise every start (one compiled call) -> the
+best start, canonical in its symmetry orbit -> Jacobian and predictions at it -> error
+analysis -> `StiffnessFit`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from statistics import NormalDist
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Float
+
+from .._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
+from .._status import RESULTS, message, promote, raise_if_failed
+from ._models import AbstractForwardModel, forward_model
+from ._parameters import Parameterisation, resolve_fixed, start_vector
+from ._report import ErrorAnalysis, Identifiability, error_analysis
+from ._symmetry import canonical, closest_in_orbit, symmetries
+
+#: The solvers `fit_stiffness` knows by name (for the command line; or pass an optimistix
+#: least-squares solver or minimiser, e.g. `optimistix.OptaxMinimiser(optax.adam(1e-2), ...)`).
+SOLVERS = ("levenberg-marquardt", "gauss-newton", "lbfgs", "adam")
+BATCHING = ("map", "vmap")
+
+
+def make_solver(name: str, rtol: float = 1e-10, atol: float = 1e-12, learning_rate: float = 1e-2):
+    """The optimistix solver of a name in `SOLVERS`: Levenberg--Marquardt or Gauss--Newton
+    on the residuals, or optax's L-BFGS or Adam on $\\tfrac12\\sum r^2$ (through
+    `optimistix.OptaxMinimiser`; for comparison)."""
+    if name == "levenberg-marquardt":
+        return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    if name == "gauss-newton":
+        return optx.GaussNewton(rtol=rtol, atol=atol)
+    if name == "lbfgs":
+        return optx.OptaxMinimiser(optax.lbfgs(), rtol=rtol, atol=atol)
+    if name == "adam":
+        return optx.OptaxMinimiser(optax.adam(learning_rate), rtol=rtol, atol=atol)
+    raise ValueError(f"solver must be one of {SOLVERS} or an optimistix least-squares solver or minimiser, got {name!r}")
+
+
+class FitProblem(eqx.Module):
+    """What a fit solved: the forward model (with its data), the parameterisation, the
+    solver and its step budget (what `bootstrap` refits with)."""
+
+    model: AbstractForwardModel
+    parameterisation: Parameterisation
+    solver: optx.AbstractLeastSquaresSolver | optx.AbstractMinimiser
+    max_steps: int = eqx.field(static=True)
+
+
+class StiffnessFit(eqx.Module):
+    """Result of `fit_stiffness` (or `fit_stiffness_linear`).
+
+    `rod`: the fitted `Rod`, in the canonical gauge ($K_1 \\le K_2$ where that is a symmetry)
+    with fixed parameters at their fixed values.  `params`, `stderr`: mappings name -> value
+    for the free parameters (names from "K1", "K2", "K3", "K13", "K23", "uhat1", "uhat2",
+    "uhat3"), in the order of `names`; `covariance`, `correlation` in the same order.
+    Standard errors are $\\sqrt{\\mathrm{diag}\\,(J^TJ)^{-1}}$ with $J$ the Jacobian of the
+    $\\sigma$-normalised residuals (sigma trusted, `absolute_sigma=True`), or that times the
+    reduced $\\chi^2$ = `2 cost / (m - p)` when `absolute_sigma=False`; a parameter with
+    a share in a null direction of $J$ has `inf`.  `cost` = $\\tfrac12\\sum r^2$ as scipy;
+    `residuals` normalised (helix data: all F residuals, then all M residuals, then
+    registers if fitted).  `predicted`: the model's predictions of the observed quantities
+    by name -- helix data: `force`, `moment`, `register` and `slot` (the register slot of
+    `helix_equilibria` used per point); end responses: the two measured responses;
+    shapes: `points`; the linear fit: `moment` vectors.  Convergence: `result` (a `RESULTS`
+    code of the best start), `ok`, `message`, `n_steps` (of the best start), `n_starts`,
+    `n_agree` (starts that reached the best minimum, up to the symmetries), `start_costs`.
+    `identifiability`: see `Identifiability`.  `method`: the solver's name.
+    """
+
+    rod: Rod
+    names: tuple[str, ...] = eqx.field(static=True)
+    params: dict
+    stderr: dict
+    covariance: Float[Array, "p p"]
+    correlation: Float[Array, "p p"]
+    cost: float
+    chi2_reduced: float
+    residuals: Float[Array, " m"]
+    predicted: dict
+    result: RESULTS
+    n_steps: int
+    n_starts: int
+    n_agree: int
+    start_costs: Array
+    identifiability: Identifiability
+    method: str = eqx.field(static=True)
+    absolute_sigma: bool = eqx.field(static=True)
+    problem: FitProblem | None = eqx.field(repr=False)
+
+    @property
+    def ok(self) -> bool:
+        """Whether the best start converged (to a finite cost)."""
+        return bool(self.result == RESULTS.successful)
+
+    @property
+    def message(self) -> str:
+        """"converged", or why not."""
+        if self.ok:
+            return "converged"
+        return f"best start did not report convergence: {message(self.result)} ({self.method}, {self.n_steps} steps)"
+
+    def interval(self, level: float = 0.95) -> dict[str, tuple[float, float]]:
+        """Normal-approximation confidence intervals value ± z stderr, by name."""
+        z = NormalDist().inv_cdf(0.5 + level / 2)
+        return {n: (float(self.params[n] - z * self.stderr[n]), float(self.params[n] + z * self.stderr[n])) for n in self.names}
+
+    def to_dict(self) -> dict:
+        """Plain-Python summary (JSON-serialisable)."""
+        return {
+            "method": self.method,
+            "names": list(self.names),
+            "params": {n: float(v) for n, v in self.params.items()},
+            "stderr": {n: float(v) for n, v in self.stderr.items()},
+            "rod": {n: float(v) for n, v in zip(PARAMETER_NAMES, np.asarray(rod_vector(self.rod)))},
+            "covariance": np.asarray(self.covariance).tolist(),
+            "correlation": np.asarray(self.correlation).tolist(),
+            "cost": float(self.cost),
+            "chi2_reduced": float(self.chi2_reduced),
+            "absolute_sigma": self.absolute_sigma,
+            "success": self.ok,
+            "message": self.message,
+            "n_steps": int(self.n_steps),
+            "n_starts": int(self.n_starts),
+            "n_agree": int(self.n_agree),
+            "identifiability": self.identifiability.to_dict(),
+        }
+
+
+def assemble(
+    rod: Rod, analysis: ErrorAnalysis, values: Mapping[str, float], residuals, predicted, *, result, method: str,
+    absolute_sigma: bool, n_steps: int = 0, start_costs=None, n_agree: int = 1, problem: FitProblem | None = None,
+) -> StiffnessFit:
+    """A `StiffnessFit` from the error analysis at the fitted values (the one constructor of
+    the fits of this package)."""
+    start_costs = jnp.asarray([analysis.cost] if start_costs is None else start_costs)
+    return StiffnessFit(
+        rod=rod,
+        names=tuple(values),
+        params={n: jnp.asarray(v) for n, v in values.items()},
+        stderr=analysis.stderr,
+        covariance=analysis.covariance,
+        correlation=analysis.correlation,
+        cost=analysis.cost,
+        chi2_reduced=analysis.chi2_reduced,
+        residuals=jnp.asarray(residuals),
+        predicted={k: jnp.asarray(v) for k, v in predicted.items()},
+        result=result,
+        n_steps=int(n_steps),
+        n_starts=int(start_costs.shape[0]),
+        n_agree=int(n_agree),
+        start_costs=start_costs,
+        identifiability=analysis.identifiability,
+        method=method,
+        absolute_sigma=absolute_sigma,
+        problem=problem,
+    )
+
+
+def minimise(z0, model: AbstractForwardModel, param: Parameterisation, solver, max_steps: int):
+    """One local solve from internal coordinates `z0`: (z, result, steps).  Pure, vmappable."""
+
+    def fn(z, args):
+        model, param = args
+        return model.residuals(param.rod_at(z))[0]
+
+    args = (model, param)
+    if isinstance(solver, optx.AbstractLeastSquaresSolver):
+        sol = optx.least_squares(fn, solver, z0, args, max_steps=max_steps, throw=False)
+    else:
+        cost = lambda z, a: 0.5 * jnp.sum(fn(z, a) ** 2)  # noqa: E731
+        sol = optx.minimise(cost, solver, z0, args, max_steps=max_steps, throw=False)
+    return sol.value, promote(sol.result), sol.stats["num_steps"]
+
+
+def cost_at(z, model: AbstractForwardModel, param: Parameterisation):
+    """$\\tfrac12\\sum r^2$ at internal coordinates `z` (`inf` where not finite)."""
+    r = model.residuals(param.rod_at(z))[0]
+    cost = 0.5 * jnp.sum(r * r)
+    return jnp.where(jnp.isfinite(cost), cost, jnp.inf)
+
+
+@eqx.filter_jit
+def _multistart(z0s, model, param, solver, max_steps: int, batching: str):
+    """Local solves from every start; returns z, cost, result, steps per start.
+
+    `batching="vmap"` solves all starts in lock step; `"map"` (`jax.lax.map`) one after
+    another.  "map" is the default because it is faster here: under `vmap` the register
+    solver's data-dependent `lax.cond` (robust re-solve of unconverged brackets, in
+    `_roots.py`) becomes a `select` that runs the robust path on every point of every
+    start, and the batched while loop runs until the slowest start stops."""
+
+    def one(z0):
+        z, result, steps = minimise(z0, model, param, solver, max_steps)
+        cost = cost_at(z, model, param)
+        result = RESULTS.where(jnp.isfinite(cost) | (result != RESULTS.successful), result, RESULTS.cost_not_finite)
+        return z, cost, result, steps
+
+    if batching == "vmap":
+        return jax.vmap(one)(z0s)
+    return jax.lax.map(one, z0s)
+
+
+@eqx.filter_jit
+def _full_vectors(z, param: Parameterisation):
+    return jax.vmap(lambda zz: param.full(param.physical(zz)))(z)
+
+
+@eqx.filter_jit
+def _jacobian_and_predictions(q, model: AbstractForwardModel, param: Parameterisation):
+    """Jacobian of the normalised residuals with respect to the free physical parameters,
+    the residuals and the predictions, in one compiled program."""
+
+    def residuals(qq):
+        r, predicted = model.residuals(param.rod(qq))
+        return r, (r, predicted)
+
+    return jax.jacfwd(residuals, has_aux=True)(q)
+
+
+def _solver(solver, rtol, atol, learning_rate):
+    if isinstance(solver, str):
+        return solver, make_solver(
+            solver, 1e-10 if rtol is None else float(rtol), 1e-12 if atol is None else float(atol),
+            1e-2 if learning_rate is None else float(learning_rate),
+        )
+    if not isinstance(solver, (optx.AbstractLeastSquaresSolver, optx.AbstractMinimiser)):
+        raise ValueError(
+            f"solver must be one of {SOLVERS} or an optimistix least-squares solver or minimiser, "
+            f"got {type(solver).__name__}"
+        )
+    if rtol is not None or atol is not None or learning_rate is not None:
+        raise ValueError("rtol=, atol= and learning_rate= apply to solvers given by name; set them on the solver object")
+    return type(solver).__name__, solver
+
+
+def fit_stiffness(
+    data,
+    *,
+    uhat: ArrayLike | None = None,
+    fit_uhat: bool = False,
+    fix: Mapping[str, float] | None = None,
+    init: Rod | Mapping[str, float] | None = None,
+    solver="levenberg-marquardt",
+    n_starts: int | None = None,
+    key: Array | None = None,
+    absolute_sigma: bool = True,
+    rtol: float | None = None,
+    atol: float | None = None,
+    max_steps: int = 256,
+    learning_rate: float | None = None,
+    weak_threshold: float = 0.1,
+    batching: str = "map",
+    branch: str | None = None,
+    use_register: bool | None = None,
+    errors_in_variables: bool | None = None,
+    throw: bool = False,
+) -> StiffnessFit:
+    """Fit the stiffness $K$ (and optionally $\\hat u$) of a rod to data.
+
+    Minimises $\\tfrac12\\sum r^2$ over the free parameters, with $r$ the $\\sigma$-normalised
+    residuals of the forward model of the data (`helixrod._fit._models`):
+
+    - `HelixData`: the axial force and moment of one register per measured helix;
+    - `EndResponseData`: the two measured end responses (force, moment, extension,
+      rotation) of a finite rod of known length, each point a `solve_boundary_value` solve;
+    - `ShapeData`: centreline points of a finite rod under known end loads.
+
+    Finite-rod models are differentiated through the shooting root in forward mode (the
+    same parameterisation, solver, covariance and identifiability report).
+
+    - `uhat`: the intrinsic twist, held fixed (default (0, 0, 0)); or `fit_uhat=True`.
+    - `fix`: mapping name -> value of parameters held fixed (names as in `PARAMETER_NAMES`), e.g.
+      `{"K13": 0, "K23": 0}` for the uncoupled model, `{"K2": ..}`.
+    - `init`: a `Rod` or mapping for the first start; default: an isotropic rod that fits
+      the data by linear least squares (helices: Love's formulas).  Starts 2..`n_starts`
+      (default 32 for helices, 1 for finite rods) are random perturbations of it
+      (log-normal stiffnesses, random couplings and twists), drawn from `key` (default
+      `jax.random.key(0)`), solved in one jitted call: `batching="map"` (default,
+      `jax.lax.map`, faster on CPU with the present register solver) or `"vmap"` (all
+      starts in lock step).
+    - `solver`: an optimistix least-squares solver (e.g. `optimistix.LevenbergMarquardt(rtol,
+      atol)`) or minimiser of $\\tfrac12\\sum r^2$ (e.g. `optimistix.OptaxMinimiser(optax.adam(
+      1e-2), rtol, atol)`; helix data only: finite-rod models take least-squares solvers),
+      or a name from `SOLVERS` (default `"levenberg-marquardt"`), built with `rtol`
+      (default 1e-10), `atol` (1e-12) and, for `"adam"`, `learning_rate` (1e-2).
+      `max_steps` per start.
+    - `absolute_sigma`: True (default) trusts the sigmas; False scales the covariance by
+      the reduced $\\chi^2$ (use when the sigmas are only relative weights).
+    - Helix data only: `branch` -- which register a point is matched to: `"nearest"`
+      (default; the register whose (F, M) is closest to the observation in sigma units),
+      `"stable"` (the nearest stable one), `"min-energy"` (slot 0, the global energy
+      minimum on the circle); `use_register` -- match the observed registers
+      (`data.register`): the branch becomes the register nearest in angle, and, if
+      `data.register_sigma` is given, the angle is a residual too (default: on when the
+      data carry `register_sigma`); `errors_in_variables` -- propagate `data.kappa_sigma`,
+      `tau_sigma` (and `kappa_tau_correlation`) to first order into an effective 2x2
+      covariance of (F, M) at each register; the residual pair is whitened by it.
+    - `throw`: raise `SolverError` if the best start did not converge (default `False`:
+      read `ok`, `result`, `message`).
+
+    Fewer residuals than free parameters (a single data point gives two) is allowed: the
+    fit reproduces the data and the report says what is left open -- `identifiability.rank`
+    at most the number of residuals, the null directions in `weak` with `inf` standard
+    errors, and `inf` for every parameter with a share in them.
+
+    Raises `ValueError` for bad options.  Not itself jit-able (it returns Python summaries);
+    the solves inside are jitted and reuse compilations across calls of equal shapes.
+
+    **Example**
+
+    ```python
+    data = helixrod.synthetic_helix_data(rod, kappa, tau, 0.01, jax.random.key(1))
+    fit = helixrod.fit_stiffness(data, uhat=rod.uhat)
+    fit.params["K1"], fit.stderr["K1"], fit.identifiability.weak
+    ```
+    """
+    model = forward_model(data, branch=branch, use_register=use_register, errors_in_variables=errors_in_variables)
+    method, solver = _solver(solver, rtol, atol, learning_rate)
+    if model.forward_mode_only and not isinstance(solver, optx.AbstractLeastSquaresSolver):
+        raise ValueError(
+            f"fit_stiffness: solver {method!r} is not available for finite-rod data (the forward model "
+            "is differentiated in forward mode); use 'levenberg-marquardt' or 'gauss-newton'"
+        )
+    n_starts = model.default_starts if n_starts is None else n_starts
+    if isinstance(n_starts, bool) or int(n_starts) < 1:
+        raise ValueError(f"n_starts must be >= 1, got {n_starts}")
+    if batching not in BATCHING:
+        raise ValueError(f"batching must be 'map' or 'vmap', got {batching!r}")
+    fixed = resolve_fixed(uhat, fit_uhat, fix)
+    u_fixed = [fixed.get(f"uhat{i}", 0.0) for i in (1, 2, 3)]
+    B, C = model.isotropic_start(u_fixed)
+    p0 = start_vector(init, fixed, np.array([B, B, C, 0.0, 0.0, *u_fixed]))
+    param = Parameterisation(fixed, float(np.sqrt(p0[0] * p0[1])), model.twist_scale(p0))
+    key = jax.random.key(0) if key is None else key
+    z0s = param.starts(param.internal(p0), int(n_starts), key)
+    z, cost, results, steps = _multistart(jnp.asarray(z0s), model, param, solver, int(max_steps), batching)
+    z, cost, steps = np.asarray(z), np.asarray(cost), np.asarray(steps)
+
+    best = int(np.argmin(np.where(np.isfinite(cost), cost, np.inf)))
+    frame_observed = model.frame_observed
+    p_all = np.asarray(_full_vectors(jnp.asarray(z), param))
+    p_best = canonical(p_all[best], param, frame_observed)
+    # Starts that reached the best minimum up to the symmetries.
+    scale = param.scales(PARAMETER_NAMES)
+    agree = sum(
+        1
+        for i in range(len(cost))
+        if np.isfinite(cost[i])
+        and abs(cost[i] - cost[best]) <= 1e-6 * (1 + cost[best])
+        and np.max(np.abs(closest_in_orbit(p_all[i], p_best, param, frame_observed) - p_best) / scale) <= 1e-4
+    )
+    q = np.array([p_best[PARAMETER_NAMES.index(n)] for n in param.free])
+    J, (r, predicted) = _jacobian_and_predictions(jnp.asarray(q), model, param)
+    analysis = error_analysis(
+        J, r, dict(zip(param.free, q)), param.scales(param.free), absolute_sigma=absolute_sigma,
+        weak_threshold=weak_threshold, symmetries=[text for text, _ in symmetries(param, frame_observed)],
+    )
+    result = jax.tree.map(lambda v: v[best], results)
+    if not np.isfinite(analysis.cost):
+        result = RESULTS.cost_not_finite
+    fit = assemble(
+        rod_from_vector(p_best, checked=True), analysis, dict(zip(param.free, q)), r, predicted, result=result,
+        method=method, absolute_sigma=absolute_sigma, n_steps=int(steps[best]), start_costs=cost, n_agree=agree,
+        problem=FitProblem(model, param, solver, int(max_steps)),
+    )
+    return raise_if_failed(fit, fit.result, "fit_stiffness: the best start did not converge") if throw else fit

@@ -1,0 +1,185 @@
+"""What data determine: covariance, standard errors and the identifiability report, from
+the Jacobian of the normalised residuals at a fit."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+# A residual whose derivative exceeds this multiple of the typical (median) one is an exact
+# constraint in the error analysis.
+_STIFF_ROW = 1e8
+
+
+class Identifiability(eqx.Module):
+    """What the data determine.  `scales` are the units the parameters are measured in for
+    the scaled Jacobian $J D$ (`K_scale` for stiffnesses, `u_scale` for twists);
+    `singular_values` of $J D$ (descending; `inf` for a direction pinned by a residual of
+    unbounded sensitivity, a register at a tangency or cusp, see `notes`); `condition_number`
+    the ratio of the largest finite one to the smallest;
+    `weak`: the right singular vectors whose scaled standard error $1/s_k$ exceeds
+    `weak_threshold`, each as a mapping name -> coefficient (entries below 0.05 dropped) with
+    its scaled standard error in `weak_stderr` (`inf` for an exact null direction); `rank`
+    the numerical rank; `symmetries` the exact frame symmetries that apply (identical
+    predictions), and `notes` on near-symmetries and on residuals left out of or
+    constraining the error analysis."""
+
+    names: tuple[str, ...] = eqx.field(static=True)
+    scales: Float[Array, " p"]
+    singular_values: Float[Array, " p"]
+    condition_number: float
+    rank: int
+    weak: tuple = eqx.field(static=True)
+    weak_stderr: tuple = eqx.field(static=True)
+    weak_threshold: float = eqx.field(static=True)
+    symmetries: tuple[str, ...] = eqx.field(static=True)
+    notes: tuple[str, ...] = eqx.field(static=True)
+
+    def to_dict(self) -> dict:
+        """Plain-Python form (JSON-serialisable)."""
+        return {
+            "scales": np.asarray(self.scales).tolist(),
+            "singular_values": np.asarray(self.singular_values).tolist(),
+            "condition_number": float(self.condition_number),
+            "rank": int(self.rank),
+            "weak": [dict(w) for w in self.weak],
+            "weak_stderr": list(self.weak_stderr),
+            "symmetries": list(self.symmetries),
+            "notes": list(self.notes),
+        }
+
+
+class ErrorAnalysis(eqx.Module):
+    """The result of `error_analysis`: `covariance` and `correlation` `(p, p)` in the order
+    of the names, `stderr` by name (`inf` for a parameter with a share in a null
+    direction), `cost` $= \\tfrac12\\sum r^2$, `chi2_reduced` $= 2\\,$cost$/(m - \\mathrm{rank})$,
+    and the `identifiability` report."""
+
+    covariance: Float[Array, "p p"]
+    correlation: Float[Array, "p p"]
+    stderr: dict
+    cost: float
+    chi2_reduced: float
+    identifiability: Identifiability
+
+
+def error_analysis(
+    jacobian: ArrayLike,
+    residuals: ArrayLike,
+    values: Mapping[str, float],
+    scales: ArrayLike,
+    *,
+    absolute_sigma: bool = True,
+    weak_threshold: float = 0.1,
+    symmetries: Sequence[str] = (),
+    notes: Sequence[str] = (),
+) -> ErrorAnalysis:
+    """Covariance, standard errors and the identifiability report of a least-squares fit
+    from the Jacobian `(m, p)` of its $\\sigma$-normalised residuals `(m,)` with respect to
+    the parameters `values` (name -> value, `p` of them, in the Jacobian's column order),
+    each measured in units of `scales` `(p,)` for the report.
+
+    Standard errors are $\\sqrt{\\mathrm{diag}\\,(J^TJ)^{-1}}$ (sigma trusted,
+    `absolute_sigma=True`), or that times the reduced $\\chi^2$ when `absolute_sigma=False`.
+    Fewer residuals than parameters leave at least $p - m$ exact null directions.  A row
+    whose derivative is more than $10^8$ times the typical one (a point whose register sits
+    at, or within rounding of, a tangency or a cusp, where the implicit-function derivative
+    is unbounded) is treated as an exact constraint -- the limit of its weight -- because an
+    SVD resolves singular values only down to eps times the largest: kept in, one such row
+    makes every other direction look null.  Rows with non-finite derivatives carry no
+    information and are dropped; both are named in `notes`.  `symmetries`: descriptions of
+    exact symmetries of the model, carried into the report.
+    """
+    names = tuple(values)
+    q = np.array([float(values[n]) for n in names])
+    J = np.asarray(jacobian, float)
+    r = np.asarray(residuals, float)
+    m, p = J.shape
+    scales = np.asarray(scales, float)
+    Js = J * scales
+    notes = list(notes)
+    finite_rows = np.all(np.isfinite(Js), axis=1)
+    row_norm = np.linalg.norm(np.where(finite_rows[:, None], Js, 0.0), axis=1)
+    typical = float(np.median(row_norm[finite_rows])) if finite_rows.any() else 0.0
+    stiff = finite_rows & (row_norm > _STIFF_ROW * typical) if typical > 0 else np.zeros(m, bool)
+    if (~finite_rows).any():
+        notes.append(f"residuals {np.flatnonzero(~finite_rows).tolist()} have non-finite derivatives: left out of the error bars")
+    n_constrained = 0
+    free_basis = np.eye(p)
+    if stiff.any():
+        _, s_c, Vt_c = np.linalg.svd(Js[stiff], full_matrices=True)
+        n_constrained = int(np.sum(s_c > 1e-10 * s_c[0]))
+        free_basis = Vt_c[n_constrained:].T
+        notes.append(
+            f"residuals {np.flatnonzero(stiff).tolist()} are more than {_STIFF_ROW:.0e} times as sensitive as "
+            "the others (a register at a tangency or cusp: the linearisation is not valid there); "
+            f"they are treated as exact constraints on {n_constrained} direction(s)"
+        )
+    J_free = Js[finite_rows & ~stiff] @ free_basis
+    # Only the right singular vectors are used: the full left factor (m x m) only when m < p.
+    _, s, Vt_free = np.linalg.svd(J_free, full_matrices=J_free.shape[0] < J_free.shape[1])
+    s = np.concatenate([s, np.zeros(free_basis.shape[1] - s.size)])  # m < p: exact null directions
+    Vt = Vt_free @ free_basis.T
+    s_max = s[0] if s.size and s[0] > 0 else 1.0
+    null = s <= 1e-10 * s_max
+    rank = n_constrained + int(np.sum(~null))
+    inv_s2 = np.where(null, 0.0, 1.0 / np.where(null, 1.0, s) ** 2)
+    cov_scaled = (Vt.T * inv_s2) @ Vt
+    cov = cov_scaled * np.outer(scales, scales)
+    cost = 0.5 * float(r @ r)
+    dof = m - rank
+    chi2_reduced = 2 * cost / dof if dof > 0 else np.nan
+    if not absolute_sigma:
+        cov = cov * chi2_reduced
+    var = np.diag(cov).copy()
+    undetermined = np.any(np.abs(Vt[null]) > 1e-6, axis=0) if null.any() else np.zeros(p, bool)
+    var[undetermined] = np.inf
+    stderr = np.sqrt(var)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = np.sqrt(np.diag(cov))
+        corr = cov / np.outer(d, d)
+    corr[undetermined, :] = np.nan
+    corr[:, undetermined] = np.nan
+    weak, weak_err = [], []
+    for k in range(s.size):
+        err = np.inf if null[k] else 1.0 / s[k]
+        if not absolute_sigma and np.isfinite(err):
+            err *= np.sqrt(chi2_reduced)
+        if err > weak_threshold:
+            v = Vt[k] * np.sign(Vt[k][np.argmax(np.abs(Vt[k]))])
+            weak.append(tuple((names[i], round(float(v[i]), 4)) for i in range(p) if abs(v[i]) >= 0.05))
+            weak_err.append(float(err))
+    qd = dict(zip(names, q))
+    if "K1" in qd and "K2" in qd:
+        i1, i2 = names.index("K1"), names.index("K2")
+        diff_err = np.sqrt(max(cov[i1, i1] + cov[i2, i2] - 2 * cov[i1, i2], 0.0))
+        if abs(qd["K1"] - qd["K2"]) < 2 * diff_err:
+            notes.append(
+                "K1 and K2 agree within 2 standard errors: near K1 = K2 the bending axes, and with "
+                "them the split of the couplings between K13 and K23 (and uhat1, uhat2), are poorly "
+                "determined; the labels d1 (softer) and d2 may swap between data sets"
+            )
+    ident = Identifiability(
+        names=names,
+        scales=jnp.asarray(scales),
+        singular_values=jnp.asarray(np.concatenate([np.full(n_constrained, np.inf), s])),
+        condition_number=(float(s[0] / s[-1]) if s[-1] > 0 else float("inf")) if s.size else 1.0,
+        rank=rank,
+        weak=tuple(weak),
+        weak_stderr=tuple(weak_err),
+        weak_threshold=weak_threshold,
+        symmetries=tuple(symmetries),
+        notes=tuple(notes),
+    )
+    return ErrorAnalysis(
+        covariance=jnp.asarray(cov),
+        correlation=jnp.asarray(corr),
+        stderr={n: jnp.asarray(v) for n, v in zip(names, stderr)},
+        cost=cost,
+        chi2_reduced=chi2_reduced,
+        identifiability=ident,
+    )

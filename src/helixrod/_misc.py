@@ -1,0 +1,116 @@
+"""Small helpers shared by every part of the package: concreteness, gradient-safe
+elementary functions, and the argument checks that entry points run before tracing.
+
+Checks run on concrete values only: a traced value cannot be inspected, and the entry
+points flag it inside the program instead (a result code, or NaN), so that one bad point
+never spoils a `vmap`-ped batch.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike
+
+
+def is_concrete(*trees) -> bool:
+    """True when no leaf of `trees` is a tracer (the values can be read in Python)."""
+    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(trees))
+
+
+def float_dtype():
+    """The default floating dtype (float64 with `jax_enable_x64`, else float32)."""
+    return jnp.result_type(float)
+
+
+def safe_sqrt(x: ArrayLike) -> Array:
+    """$\\sqrt{x}$ for $x \\ge 0$ with a zero (not infinite or NaN) derivative at 0 and 0 for
+    $x \\le 0$ (double `where`)."""
+    positive = x > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
+
+
+def no_gradient(tree):
+    """`tree` with `stop_gradient` on its floating-point arrays (other leaves untouched)."""
+    return jax.tree.map(lambda x: jax.lax.stop_gradient(x) if eqx.is_inexact_array(x) else x, tree)
+
+
+def check_integer(value, name: str, owner: str, minimum: int = 1) -> int:
+    """`value` as an `int`, or `ValueError` unless it is an integer (not a bool) >= `minimum`."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{owner}: {name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def check_choice(value, choices, name: str, owner: str):
+    """`value`, or `ValueError` unless it is one of `choices`."""
+    if value not in choices:
+        raise ValueError(f"{owner}: {name} must be one of {tuple(choices)}, got {value!r}")
+    return value
+
+
+def finite_array(x: ArrayLike, name: str, owner: str, shape_tail: tuple[int, ...] = ()) -> Array:
+    """`x` as a float array with trailing shape `shape_tail`; `ValueError` for another shape
+    or for non-finite concrete values."""
+    a = jnp.asarray(x, float_dtype())
+    if a.ndim < len(shape_tail) or a.shape[a.ndim - len(shape_tail) :] != shape_tail:
+        raise ValueError(f"{owner}: {name} must have trailing shape {shape_tail}, got {a.shape}")
+    if is_concrete(a) and not np.all(np.isfinite(np.asarray(a))):
+        raise ValueError(f"{owner}: {name} must be finite, got {a}")
+    return a
+
+
+def finite_scalar(x: ArrayLike, name: str, owner: str, *, positive: bool = False) -> Array:
+    """`x` as a float scalar; `ValueError` for another shape, or for a concrete value that is
+    not finite (or, with `positive=True`, not > 0)."""
+    a = jnp.asarray(x, float_dtype())
+    if a.shape != ():
+        raise ValueError(f"{owner}: {name} must be a scalar, got shape {a.shape} (use jax.vmap for batches)")
+    if is_concrete(a):
+        v = float(a)
+        if not np.isfinite(v) or (positive and not v > 0):
+            raise ValueError(f"{owner}: {name} must be finite{' and > 0' if positive else ''}, got {v}")
+    return a
+
+
+def column(x: ArrayLike, name: str, owner: str, n: int | None = None) -> np.ndarray:
+    """A one-dimensional float64 NumPy column (a scalar broadcasts to length `n` when `n` is
+    given); `ValueError` for another shape or non-finite entries, naming the rows."""
+    a = np.asarray(x, dtype=float)
+    if n is not None and a.ndim == 0:
+        a = np.full(n, float(a))
+    if a.ndim != 1 or (n is not None and a.shape != (n,)):
+        raise ValueError(f"{owner}: {name} must be one-dimensional{'' if n is None else f' of length {n}'}, got shape {a.shape}")
+    bad = np.flatnonzero(~np.isfinite(a))
+    if bad.size:
+        raise ValueError(f"{owner}: {name} has non-finite values in rows {bad[:20].tolist()}")
+    return a
+
+
+def increasing_within(s: ArrayLike, length: ArrayLike, name: str, owner: str, slack: float = 0.0) -> Array:
+    """Arc lengths `s` (1-d, non-empty) that increase strictly within $[0, L(1 + slack)]$;
+    checked when both are concrete."""
+    s = jnp.asarray(s, float_dtype())
+    if s.ndim != 1 or s.shape[0] < 1:
+        raise ValueError(f"{owner}: {name} must be a 1-d array of arc lengths, got shape {s.shape}")
+    if is_concrete(s, length):
+        sn, ln = np.asarray(s), float(np.asarray(length))
+        if np.any(np.diff(sn) <= 0) or sn[0] < 0 or sn[-1] > ln * (1 + slack):
+            raise ValueError(f"{owner}: {name} must increase strictly within [0, {ln}]")
+    return s
+
+
+def newton_iterations(residual, x0, steps: int, project=None):
+    """`steps` plain Newton steps $x \\leftarrow x - J(x)^{-1} f(x)$ on a small square system
+    (a non-finite step is skipped), each optionally followed by `project(new, old)`; no
+    convergence test and no derivatives through the iteration (for initial guesses and
+    seeds that a caller checks afterwards)."""
+
+    def step(_, x):
+        dx = jnp.linalg.solve(jax.jacfwd(residual)(x), residual(x))
+        new = x - jnp.where(jnp.all(jnp.isfinite(dx)), dx, 0.0)
+        return new if project is None else project(new, x)
+
+    return jax.lax.fori_loop(0, steps, step, x0)

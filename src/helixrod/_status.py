@@ -1,0 +1,77 @@
+"""One status convention for every iterative result: a `RESULTS` code and `ok`.
+
+Every solver result of helixrod (`KirchhoffSolution`, `BoundaryValueSolution`, `BulkHelix`,
+`ResponseCurve`, `StiffnessFit`, `Bootstrap`) carries `result`, an item of `RESULTS` (an
+equinox enumeration that extends diffrax's and optimistix's codes, so theirs pass through
+unchanged), and `ok` = `result == RESULTS.successful`.  Every iterative entry point takes
+`throw=`: with `throw=True` a failure raises `SolverError` (a `RuntimeError`) when the call
+runs eagerly, and an equinox runtime error with the same message inside `jax.jit`; with
+`throw=False` the caller reads `result` -- under `vmap` one failed point never spoils the
+others.  Bad input (shapes, types, concrete non-finite values) is a `ValueError` before
+anything runs.
+"""
+
+from __future__ import annotations
+
+import diffrax
+import jax
+import numpy as np
+
+from ._misc import is_concrete
+
+
+class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
+    """Result codes of helixrod's solvers (diffrax's and optimistix's codes included).
+
+    `RESULTS[item]` is the message of a (concrete, scalar) code; `RESULTS.promote(code)`
+    converts a diffrax or optimistix code."""
+
+    invalid_input = (
+        "The input was rejected (non-finite values, a length <= 0, or a frame that is not a "
+        "rotation); its fields are NaN."
+    )
+    residual_above_tolerance = "The solver stopped, but the residual is above its tolerance."
+    cost_not_finite = "The cost of the best start is not finite."
+
+
+class SolverError(RuntimeError):
+    """A solver did not succeed and was asked to raise (`throw=True`)."""
+
+
+def promote(result) -> RESULTS:
+    """A diffrax or optimistix result code as a `RESULTS` code (unchanged if it is one)."""
+    return result if isinstance(result, RESULTS) else RESULTS.promote(result)
+
+
+def message(result) -> str:
+    """The message of a concrete scalar code ("" for success)."""
+    return RESULTS[result]
+
+
+def raise_if_failed(tree, result, what: str, hint: str = ""):
+    """The `throw=True` behaviour: `tree` unchanged if every code in `result` is successful.
+
+    Concrete codes (an eager call): `SolverError` naming `what`, the message and, for a
+    batch, the failed points.  Traced codes: `tree` threaded through `eqx.error_if`, so the
+    program raises when it runs (the message of the first failed code)."""
+    failed = result != RESULTS.successful
+    if not is_concrete(failed):
+        return result.error_if(tree, failed)
+    failed = np.asarray(failed)
+    if not failed.any():
+        return tree
+    if failed.ndim == 0:
+        raise SolverError(f"{what}: {RESULTS[result]}{hint}")
+    where = np.argwhere(failed)
+    first = tuple(int(i) for i in where[0])
+    text = RESULTS[jax.tree.map(lambda v: v[first], result)]
+    raise SolverError(
+        f"{what}: {where.shape[0]} of {failed.size} points failed (first at index "
+        f"{first if len(first) > 1 else first[0]}: {text}){hint}"
+    )
+
+
+def ok_of(result):
+    """`result == RESULTS.successful` (a boolean array of the shape of the codes)."""
+    return result == RESULTS.successful
+

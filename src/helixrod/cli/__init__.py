@@ -1,0 +1,35 @@
+"""Command line of helixrod: ``helixrod demo | sweep | fit | force-extension``.
+
+`app` is the typer application (the ``helixrod`` entry point, ``python -m helixrod.cli``).
+Its callback turns on float64 (``jax_enable_x64``) once, before any command runs: every
+command computes and prints in float64.  One private module per command (`_demo`, `_sweep`,
+`_fit`, `_force_extension`); `_numbers` parses every number spec (comma-separated lists and
+``start:stop:num`` grid axes), `_report` prints the tables of a fit; figures are drawn only
+by the plotting module (`helixrod.plot`).
+"""
+
+from __future__ import annotations
+
+import typer
+
+from ._demo import demo as demo, demo_dna_fit as demo_dna_fit, demo_fit as demo_fit
+from ._fit import example_data_path as example_data_path, fit as fit
+from ._force_extension import force_extension_command as force_extension_command
+from ._report import print_fit as print_fit
+from ._sweep import sweep_command as sweep_command
+
+app = typer.Typer(add_completion=False, help="helixrod: elastic Kirchhoff rods and helices in JAX.")
+
+
+@app.callback()
+def _main() -> None:
+    """helixrod command line."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+
+
+app.command()(demo)
+app.command(name="sweep")(sweep_command)
+app.command()(fit)
+app.command(name="force-extension")(force_extension_command)

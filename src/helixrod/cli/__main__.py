@@ -1,0 +1,5 @@
+"""``python -m helixrod.cli``: the ``helixrod`` command line."""
+
+from . import app
+
+app()

@@ -1,0 +1,67 @@
+"""``helixrod fit``: the inverse spring problem on measured helices (a CSV file)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jax
+import typer
+from rich.console import Console
+
+from .. import HelixData, fit_stiffness
+from ..plot import plot_fit
+from ._numbers import numbers
+from ._report import print_fit
+
+
+def example_data_path() -> Path:
+    """The bundled example data set (see examples/make_example_data.py)."""
+    return Path(__file__).resolve().parents[1] / "data" / "example_spring.csv"
+
+
+def fit(
+    data: Path = typer.Argument(..., help="CSV file (see helixrod.HelixData.from_csv)"),
+    uhat: str = typer.Option(None, help="fixed intrinsic twist 'u1,u2,u3' (default 0,0,0)"),
+    fit_uhat: bool = typer.Option(False, "--fit-uhat", help="fit the intrinsic twist too"),
+    fix: list[str] = typer.Option([], help="hold a parameter fixed, e.g. --fix K13=0 (repeatable)"),
+    branch: str = typer.Option("nearest", help="register rule: nearest, stable or min-energy"),
+    method: str = typer.Option("levenberg-marquardt", help="levenberg-marquardt, gauss-newton, lbfgs, adam"),
+    n_starts: int = typer.Option(32, help="number of (vmapped) starts"),
+    seed: int = typer.Option(0, help="seed of the random starts"),
+    relative_sigma: bool = typer.Option(False, "--relative-sigma", help="scale errors by the reduced chi2"),
+    out: Path = typer.Option(None, help="write the fit as JSON"),
+    plot: Path = typer.Option(None, help="write observed vs predicted F and M as PNG"),
+) -> None:
+    """Fit K1, K2, K3, K13, K23 (and uhat) to measured helices (the inverse spring problem)."""
+    console = Console()
+    fixed = {}
+    for item in fix:
+        name, _, value = item.partition("=")
+        if not value:
+            raise typer.BadParameter(f"--fix needs NAME=VALUE, got {item!r}")
+        fixed[name.strip()] = float(value)
+    try:
+        observations = HelixData.from_csv(data)
+        result = fit_stiffness(
+            observations,
+            uhat=None if uhat is None else numbers(uhat, "--uhat", 3),
+            fit_uhat=fit_uhat,
+            fix=fixed or None,
+            branch=branch,
+            solver=method,
+            n_starts=n_starts,
+            key=jax.random.key(seed),
+            absolute_sigma=not relative_sigma,
+        )
+    except ValueError as error:
+        console.print(f"[red]error:[/red] {error}")
+        raise typer.Exit(code=2) from None
+    console.print(f"{len(observations)} helices from {data}")
+    print_fit(console, result)
+    if out is not None:
+        out.write_text(json.dumps(result.to_dict(), indent=2))
+        console.print(f"wrote {out}")
+    if plot is not None:
+        plot_fit(observations, result, plot)
+        console.print(f"wrote {plot}")

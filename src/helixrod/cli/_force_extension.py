@@ -1,0 +1,79 @@
+"""``helixrod force-extension``: a finite rod's force-extension curve against the bulk helix."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from .. import Rod, force_extension
+from ..plot import plot_response
+from ._numbers import grid, numbers
+
+#: The curve's fields written by ``--out`` (with the rod's ``length``).
+CURVE_FIELDS = ("force", "moment", "extension", "rotation", "bulk_force", "bulk_moment", "bulk_extension", "bulk_rotation", "ok")
+
+
+def force_extension_command(
+    rod: str = typer.Option("1,1,0.7692307692", help="K1,K2,K3[,K13,K23]"),
+    uhat: str = typer.Option("0,1,0.3", help="intrinsic twist u1,u2,u3 (the unloaded helix)"),
+    turns: float = typer.Option(5.0, help="rod length in turns of the unloaded helix"),
+    forces: str = typer.Option("0:0.05:21", help="axial forces start:stop:num"),
+    moment: float = typer.Option(None, help="hold this axial moment (a spring on hooks)"),
+    rotation: float = typer.Option(
+        None, help="hold the end rotation, in radians beyond the unloaded one (magnetic tweezer; default 0)"
+    ),
+    segments: int = typer.Option(1, help="shooting pieces (more for long, stretched rods)"),
+    out: Path | None = typer.Option(None, help="write the curve as JSON"),
+    plot: Path | None = typer.Option(None, help="write extension against force (finite and bulk) as PNG"),
+) -> None:
+    """Force-extension curve of a finite clamped rod against the uniform-helix (bulk) formula."""
+    console = Console()
+    K = numbers(rod, "--rod", (3, 5))
+    u = numbers(uhat, "--uhat", 3)
+    norm = math.sqrt(sum(x * x for x in u))
+    if norm == 0:
+        raise typer.BadParameter("--uhat must not be zero: the length is given in turns of the unloaded helix")
+    if not turns > 0:
+        raise typer.BadParameter(f"--turns must be > 0, got {turns}")
+    if moment is not None and rotation is not None:
+        raise typer.BadParameter("give --moment or --rotation, not both")
+    try:
+        the_rod = Rod(*K, uhat=u)
+    except ValueError as error:
+        raise typer.BadParameter(str(error)) from None
+    length = turns * 2 * math.pi / norm
+    force_values = grid(forces, "--forces")
+    held = {"moment": moment} if moment is not None else {"rotation": length * norm + (rotation or 0.0)}
+    start = time.perf_counter()
+    try:
+        curve = force_extension(the_rod, length, force_values, segments=segments, **held)
+    except ValueError as error:
+        raise typer.BadParameter(str(error)) from None
+    seconds = time.perf_counter() - start
+    name = "moment" if moment is not None else "rotation"
+    other = "rotation" if moment is not None else "moment"
+    table = Table(title=f"force-extension, L = {length:.4g} ({turns:g} turns), {name} held")
+    for col in ("F", "h", "h bulk", "h - h bulk", other, f"{other} bulk", "ok"):
+        table.add_column(col, justify="right")
+    for i in range(force_values.size):
+        table.add_row(
+            f"{float(curve.force[i]):.4g}", f"{float(curve.extension[i]):.6g}", f"{float(curve.bulk_extension[i]):.6g}",
+            f"{float(curve.extension[i] - curve.bulk_extension[i]):+.3e}", f"{float(getattr(curve, other)[i]):.6g}",
+            f"{float(getattr(curve, 'bulk_' + other)[i]):.6g}", "yes" if bool(curve.ok[i]) else "no",
+        )
+    console.print(table)
+    console.print(f"{force_values.size} points in {seconds:.2f} s (compilation included); "
+                  f"{int(np.sum(~np.asarray(curve.ok)))} did not converge")
+    if out is not None:
+        out.write_text(json.dumps({"length": length, **{f: np.asarray(getattr(curve, f)).tolist() for f in CURVE_FIELDS}}, indent=1))
+        console.print(f"wrote {out}")
+    if plot is not None:
+        plot_response(curve, plot)
+        console.print(f"wrote {plot}")

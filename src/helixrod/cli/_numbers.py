@@ -1,0 +1,39 @@
+"""The one parser of number specs on the command line.
+
+Two kinds of spec: comma-separated numbers, a required count of them (`numbers`: ``--rod
+1,1.5,0.8[,0.5,0.5]`` takes 3 or 5, ``--uhat u1,u2,u3`` takes 3), and a grid axis
+``start:stop:num`` (`grid`: ``--kappa 0:3:1000``, ``--forces 0:0.05:21``), ``num`` points
+from ``start`` to ``stop`` inclusive.  A bad spec raises `typer.BadParameter` naming the
+option (exit code 2, the message in typer's error box).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import typer
+
+
+def numbers(text: str, name: str, count: int | tuple[int, ...]) -> list[float]:
+    """The comma-separated numbers of `text` (given to option `name`, e.g. ``"--rod"``);
+    `count`: how many are required (one count, or a tuple of the allowed counts)."""
+    sizes = (count,) if isinstance(count, int) else tuple(count)
+    try:
+        values = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise typer.BadParameter(f"{name} must be comma-separated numbers, got {text!r}") from None
+    if len(values) not in sizes:
+        raise typer.BadParameter(f"{name} takes {' or '.join(map(str, sizes))} numbers, got {len(values)}")
+    return values
+
+
+def grid(text: str, name: str) -> np.ndarray:
+    """The grid axis ``start:stop:num`` of `text` (given to option `name`):
+    ``np.linspace(start, stop, num)``, `num` >= 1."""
+    parts = text.split(":")
+    try:
+        start, stop, num = float(parts[0]), float(parts[1]), int(parts[2])
+    except (ValueError, IndexError):
+        raise typer.BadParameter(f"{name} must be start:stop:num, e.g. 0:3:1000, got {text!r}") from None
+    if len(parts) != 3 or num < 1:
+        raise typer.BadParameter(f"{name} must be start:stop:num with num >= 1, got {text!r}")
+    return np.linspace(start, stop, num)

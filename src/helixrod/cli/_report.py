@@ -1,0 +1,43 @@
+"""Rich tables of a fit, shared by ``helixrod fit`` and ``helixrod demo``."""
+
+from __future__ import annotations
+
+import numpy as np
+from rich.table import Table
+
+
+def print_fit(console, fit) -> None:
+    """Rich tables of a `StiffnessFit` on `console`: values with standard errors,
+    correlations, and the identifiability report."""
+    table = Table(title=f"fit_stiffness ({fit.method}): cost = {float(fit.cost):.6g}, reduced chi2 = {float(fit.chi2_reduced):.4g}")
+    for col in ("parameter", "value", "stderr", "relative"):
+        table.add_column(col, justify="right")
+    for name in fit.names:
+        v, e = float(fit.params[name]), float(fit.stderr[name])
+        rel = f"{abs(e / v):.2%}" if v != 0 and np.isfinite(e) else "-"
+        table.add_row(name, f"{v:.6g}", f"{e:.3g}", rel)
+    console.print(table)
+    corr = Table(title="correlations")
+    corr.add_column("")
+    for name in fit.names:
+        corr.add_column(name, justify="right")
+    c = np.asarray(fit.correlation)
+    for i, name in enumerate(fit.names):
+        corr.add_row(name, *[("" if j > i else "-" if not np.isfinite(c[i, j]) else f"{c[i, j]:+.2f}") for j in range(len(fit.names))])
+    console.print(corr)
+    ident = fit.identifiability
+    console.print(
+        f"converged: {fit.ok} ({fit.message}); {fit.n_agree} of {fit.n_starts} starts reached the best "
+        f"minimum; scaled-Jacobian singular values {np.array2string(np.asarray(ident.singular_values), precision=3)}, "
+        f"condition number {float(ident.condition_number):.3g}, rank {ident.rank}"
+    )
+    if ident.weak:
+        for w, e in zip(ident.weak, ident.weak_stderr):
+            combo = " ".join(f"{c:+.3f}*{n}" for n, c in w)
+            console.print(f"weakly determined: {combo}  (scaled stderr {e:.3g})")
+    else:
+        console.print(f"every parameter combination determined to better than {ident.weak_threshold:.0%} (scaled)")
+    for s in ident.symmetries:
+        console.print(f"symmetry (identical predictions): {s}")
+    for note in ident.notes:
+        console.print(f"note: {note}")

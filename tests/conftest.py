@@ -1,3 +1,5 @@
+import collections
+
 import jax
 import numpy as np
 import pytest
@@ -6,22 +8,24 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 
+def pytest_configure(config):
+    # With `--dist loadfile` (pyproject's addopts) a file is one unit of work; xdist's default
+    # order (most tests first) puts the notebooks -- one test each, but the longest units --
+    # last, so the run ends with one worker on a long notebook.  Keep the order set below.
+    if getattr(config.option, "dist", "no") in ("loadfile", "loadscope"):
+        config.option.loadscopereorder = False
+
+
+def pytest_collection_modifyitems(config, items):
+    """Longest units first: the notebooks, then the test files with most tests (xdist's own
+    default order); the order within a file is unchanged."""
+    files = collections.Counter(item.path for item in items)
+    first = {}
+    for index, item in enumerate(items):
+        first.setdefault(item.path, index)
+    items.sort(key=lambda item: (item.path.suffix != ".ipynb", -files[item.path], first[item.path]))
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(20261122)
-
-
-def random_rods(rng, n):
-    """Random canonical, coupled, intrinsically curved rods (positive definite)."""
-    import helixrod
-
-    rods = []
-    while len(rods) < n:
-        K1 = rng.uniform(0.3, 2.0)
-        K2 = K1 * rng.uniform(1.0, 3.0)
-        K3 = rng.uniform(0.3, 2.0)
-        K13, K23 = rng.normal(scale=0.4, size=2)
-        if K3 - K13**2 / K1 - K23**2 / K2 <= 0.05:
-            continue
-        rods.append(helixrod.Rod(K1, K2, K3, K13, K23, rng.normal(scale=0.8, size=3)))
-    return rods

@@ -1,6 +1,17 @@
+"""The command line (helixrod.cli): the demo and `helixrod sweep` on small inputs, their files
+and output against the library, and errors.
+
+Two commands are tested next to the library tests whose compiled programs they reuse (each
+would cost 10-20 s of compilation here): `helixrod force-extension` in
+tests/test_bvp_response.py (the eager 4-segment curve) and `helixrod fit` in
+tests/test_fit_pipeline.py (the 24-point fit)."""
+
+import numpy as np
 import pytest
+from helpers import SWEEP_ROD, reference
 from typer.testing import CliRunner
 
+import helixrod as hr
 from helixrod.cli import app
 
 
@@ -22,16 +33,17 @@ def test_demo_with_fits(tmp_path):
         assert (tmp_path / name).stat().st_size > 10_000
 
 
-def test_hyperboloid_figure_without_a_path():
-    """helixrod.plot's contract: path=None returns the Figure, and no backend is changed
-    (plot_hyperboloid used to require a path and switch matplotlib to Agg)."""
-    import matplotlib
-    from matplotlib.figure import Figure
-
-    import helixrod as hr
-    from helixrod import plot
-
-    backend = matplotlib.get_backend()
-    fig = plot.plot_hyperboloid(hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0)), radii=(1.0, 3.0))
-    assert isinstance(fig, Figure) and len(fig.axes) == 2
-    assert matplotlib.get_backend() == backend
+def test_cli_sweep(tmp_path):
+    args = ["sweep", "--rod", "1,1.7,0.9,0.3,-0.2", "--uhat", "0.8,0.3,0.4", "--kappa", "0:3:20", "--tau", "-3:3:30",
+            "--fields", ",".join(hr.SweepResult.FIELDS), "--chunk-size", "512",
+            "--out", str(tmp_path / "a.npz"), "--plot", str(tmp_path / "a.png"), "--no-progress"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "swept 600 helices" in result.output
+    back = hr.load_sweep(tmp_path / "a.npz")
+    assert back["count"].shape == (20, 30)
+    expect = reference(SWEEP_ROD, back.kappa[::4, None], back.tau[None, ::3])  # 5 x 10 points
+    np.testing.assert_array_equal(back["count"][::4, ::3], expect.count)
+    assert (tmp_path / "a.png").stat().st_size > 10_000
+    bad = CliRunner().invoke(app, ["sweep", "--fields", "force,nope"])
+    assert bad.exit_code != 0 and "valid fields" in bad.output

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import random_rods
+from helpers import random_rods, tree_allclose
 
 import helixrod as hr
 
@@ -168,6 +168,7 @@ def test_vmap_equals_batch_and_no_retrace(rng):
     batch = equilibria(rod, kappa, tau)
     mapped = jax.vmap(lambda k, t: hr.helix_equilibria(rod, k, t))(kappa, tau)
     np.testing.assert_allclose(mapped.force, batch.force, rtol=1e-13)
+    tree_allclose(mapped, batch, rtol=1e-13, atol=1e-13)  # every field
 
     @eqx.filter_jit
     @eqx.debug.assert_max_traces(max_traces=1)

@@ -578,7 +578,7 @@ def _exact_helix(kappa, tau, phi, length):
     c, s = float(mpmath.cos(w)), float(mpmath.sin(w))
     rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     frame = rz @ np.asarray(hr.helix_frame(kappa, tau, phi, 0.0))
-    r, p = float(k / norm**2), float(t / norm**2)
+    r = float(k / norm**2)
     return frame, np.array([r * c, r * s, float(t / norm * L)])
 
 
@@ -776,7 +776,7 @@ def test_fit_all_points_on_a_branch_boundary():
     fit = hr.fit_stiffness(data, uhat=(1.0, 0.0, 0.0), n_starts=STARTS)
     assert fit.ok and fit.identifiability.rank == 5
     assert all(np.isfinite(float(v)) for v in fit.stderr.values())
-    # The package's noise-free accuracy (tests/test_fit.py): 1e-8 of the largest stiffness.
+    # The package's noise-free accuracy (tests/test_fit_pipeline.py): 1e-8 of the largest stiffness.
     record("fits: stable branch on the astroid, |fit - truth| / K2", np.max(np.abs(_fit_values(fit) - [1.0, 1.5, 0.8, 0.5, 0.5])) / 1.5, 1e-8)
 
 
@@ -924,7 +924,7 @@ def test_float32_accuracy(rng):
     away from tangencies (near one the eps/gap rule applies with eps32).  `solve_static` in
     float32 (10 turns of the README helix, default solver and float32 tolerances, 1e-6):
     frame within 2e-3, centreline within 1e-4 L."""
-    from conftest import random_rods
+    from helpers import random_rods
 
     rods_ = random_rods(rng, N)
     P = np.array([[float(r.K1), float(r.K2), float(r.K3), float(r.K13), float(r.K23), *np.asarray(r.uhat)] for r in rods_])

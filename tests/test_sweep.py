@@ -1,6 +1,6 @@
-"""sweep / sensitivity / save-load / figures: against helix_equilibria point by point,
-central differences, the register-count theory, and in subprocesses for memory and
-device-count independence."""
+"""sweep / sensitivity / save-load: against helix_equilibria point by point, central
+differences, the register-count theory, and in subprocesses for memory and device-count
+independence.  (Figures: tests/test_plot.py; the command: tests/test_cli.py.)"""
 
 import json
 import os
@@ -9,38 +9,24 @@ import sys
 import textwrap
 from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import (
+    N_REF, SENS_KAPPA, SENS_TAU, SWEEP_KAPPA, SWEEP_ROD, SWEEP_TAU, reference, sweep_atlas, sweep_sensitivity,
+)
 
 import helixrod as hr
-from helixrod import plot
 
 FIELDS, POINT_FIELDS, REGISTER_FIELDS = hr.SweepResult.FIELDS, hr.SweepResult.POINT_FIELDS, hr.SweepResult.REGISTER_FIELDS
 
-ROD = hr.Rod(1.0, 1.7, 0.9, K13=0.3, K23=-0.2, uhat=(0.8, 0.3, 0.4))
-KAPPA = np.concatenate([[0.0], np.linspace(0.05, 3.0, 37)])
-TAU = np.linspace(-3.0, 3.0, 53)
+ROD, KAPPA, TAU = SWEEP_ROD, SWEEP_KAPPA, SWEEP_TAU
 SRC = str(Path(hr.__file__).resolve().parents[1])
-
-# One compiled reference for every test: flat batches of N_REF points.
-N_REF = 64
-equilibria = jax.jit(hr.helix_equilibria)
-
-
-def reference(rod, kappa, tau):
-    kappa, tau = np.broadcast_arrays(np.asarray(kappa, float), np.asarray(tau, float))
-    n = kappa.size
-    pad = lambda x: jnp.asarray(np.pad(x.ravel(), (0, N_REF - n), mode="edge"))  # noqa: E731
-    eq = equilibria(rod, pad(kappa), pad(tau))
-    return jax.tree_util.tree_map(lambda x: np.asarray(x)[:n].reshape(kappa.shape + x.shape[1:]), eq)
 
 
 @pytest.fixture(scope="module")
 def atlas():
-    # chunk_size 512 over 2014 points: four chunks, the last one padded.
-    return hr.sweep(ROD, KAPPA, TAU, fields=FIELDS, chunk_size=512, progress=False)
+    return sweep_atlas()
 
 
 def test_shapes_and_dtypes(atlas):
@@ -122,13 +108,9 @@ def test_save_load_round_trip(atlas, tmp_path):
         np.testing.assert_array_equal(np.asarray(getattr(back.rod, k)), np.asarray(getattr(ROD, k)))
 
 
-SENS_KAPPA = np.array([0.4, 1.1, 2.3])
-SENS_TAU = np.array([-1.2, 0.5, 1.7])
-
-
 @pytest.fixture(scope="module")
 def sens():
-    return hr.sensitivity(ROD, SENS_KAPPA, SENS_TAU, progress=False)
+    return sweep_sensitivity()
 
 
 def test_sensitivity_matches_central_differences(sens):
@@ -202,38 +184,3 @@ def test_devices_and_memory_in_subprocess():
     assert report["same"] and report["close"]
     assert set(report["counts"]) <= {0, 2, 3, 4}
     assert report["peak_mb"] < 1200, report
-
-
-def test_every_figure_renders(atlas, sens, tmp_path):
-    paths = [
-        plot.plot_atlas(atlas, tmp_path / "atlas.png"),
-        plot.plot_stable_wrench(atlas, tmp_path / "wrench.png"),
-        plot.plot_sensitivity(sens, tmp_path / "sens.png", parameters=("K13", "uhat1")),
-        plot.plot_helix(1.0, 0.5, tmp_path / "helix.png"),
-        plot.plot_sweep_summary(atlas, tmp_path / "summary.png"),
-    ]  # plot_hyperboloid (30 s of eager solves) is rendered by tests/test_cli.py
-    for p in paths:
-        assert Path(p).stat().st_size > 10_000
-        assert Path(p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    with pytest.raises(ValueError, match="stable_force"):
-        plot.plot_stable_wrench(hr.SweepResult(ROD, KAPPA, TAU, {"count": atlas["count"]}))
-
-
-def test_cli_sweep(atlas, tmp_path):
-    from typer.testing import CliRunner
-
-    from helixrod.cli import app
-
-    args = ["sweep", "--rod", "1,1.7,0.9,0.3,-0.2", "--uhat", "0.8,0.3,0.4", "--kappa", "0:3:20", "--tau", "-3:3:30",
-            "--fields", ",".join(FIELDS), "--chunk-size", "512",  # the atlas fixture's compile is reused
-            "--out", str(tmp_path / "a.npz"), "--plot", str(tmp_path / "a.png"), "--no-progress"]
-    result = CliRunner().invoke(app, args)
-    assert result.exit_code == 0, result.output
-    assert "swept 600 helices" in result.output
-    back = hr.load_sweep(tmp_path / "a.npz")
-    assert back["count"].shape == (20, 30)
-    expect = reference(ROD, back.kappa[::4, None], back.tau[None, ::3])  # 5 x 10 points
-    np.testing.assert_array_equal(back["count"][::4, ::3], expect.count)
-    assert (tmp_path / "a.png").stat().st_size > 10_000
-    bad = CliRunner().invoke(app, ["sweep", "--fields", "force,nope"])
-    assert bad.exit_code != 0 and "valid fields" in bad.output

@@ -4,7 +4,7 @@ Results are quoted in float64: call ``jax.config.update("jax_enable_x64", True)`
 creating arrays (helixrod never changes global JAX configuration itself).
 """
 
-import importlib.metadata
+from importlib import metadata as _metadata
 
 from . import dna as dna, plot as plot
 from ._bvp import (
@@ -87,6 +87,6 @@ from ._sweep import (
 )
 
 try:
-    __version__ = importlib.metadata.version("helixrod")
-except importlib.metadata.PackageNotFoundError:  # imported from a source tree, not installed
+    __version__ = _metadata.version("helixrod")
+except _metadata.PackageNotFoundError:  # imported from a source tree, not installed
     __version__ = "0+unknown"

@@ -1,0 +1,73 @@
+"""The bulk (uniform) helix of a finite rod under two axial controls (bulk_helix): every pair
+of controls reproduces the other two observables of one helix, each helix checked against
+the balance equations (`helix_residual`) and the axial observables computed here from its
+twist; bad pairs and failures.  All calls share one compiled program (the pair is traced)."""
+
+import numpy as np
+import pytest
+from helpers import BVP_ROD, SPRING, SPRING_TURN as TURN
+
+import helixrod as hr
+from helixrod._bvp import AXIAL_CONTROLS, AXIAL_OBSERVABLES
+
+PAIRS = (("force", "moment"), ("force", "rotation"), ("extension", "rotation"))
+OBSERVABLES = ("force", "moment", "extension", "rotation")
+
+
+def test_the_table_of_pairs():
+    assert AXIAL_OBSERVABLES == OBSERVABLES
+    assert set(AXIAL_CONTROLS) == {"-".join(pair) for pair in PAIRS}
+
+
+def observables(rod, length, bulk):
+    """(F, M, h, Theta) of the uniform helix `bulk.u` of `rod`, from its twist and the
+    multipliers: n = mu2 u, F = n . a, M = m . a with a = u/|u|, h = L u3/|u|, Theta = L|u|."""
+    u = np.asarray(bulk.u)
+    a = u / np.linalg.norm(u)
+    n = float(bulk.mu2) * u
+    m = np.asarray(rod.moment(bulk.u))
+    return np.array([n @ a, m @ a, length * a[2], length * np.linalg.norm(u)])
+
+
+@pytest.mark.parametrize("rod", [SPRING, BVP_ROD], ids=["spring", "coupled"])
+def test_every_pair_reproduces_the_same_helix(rod):
+    length = 2 * TURN
+    h0, theta0 = (float(a) for a in hr.unloaded_observables(rod, length))
+    first = hr.bulk_helix(rod, length, extension=1.1 * h0, rotation=theta0 + 0.3)
+    assert bool(first.ok)
+    # An equilibrium: m = mu1 u + mu2 e3 (helix_residual), with the observables it reports.
+    np.testing.assert_allclose(hr.helix_residual(rod, first.u, first.mu2 * first.u), 0.0, atol=1e-12)
+    expected = observables(rod, length, first)
+    np.testing.assert_allclose(first.observables, expected, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose([first.extension, first.rotation], [1.1 * h0, theta0 + 0.3], rtol=1e-12)
+    assert abs(float(first.force)) > 1e-3 and abs(float(first.moment)) > 1e-3  # loaded
+    for pair in PAIRS:
+        given = {name: float(expected[OBSERVABLES.index(name)]) for name in pair}
+        bulk = hr.bulk_helix(rod, length, **given)
+        assert bool(bulk.ok), pair
+        np.testing.assert_allclose(bulk.u, first.u, rtol=1e-9, atol=1e-12, err_msg=str(pair))
+        np.testing.assert_allclose(bulk.observables, expected, rtol=1e-9, atol=1e-12, err_msg=str(pair))
+
+
+def test_bad_pairs_raise():
+    for given in ({"force": 1.0, "extension": 2.0}, {"moment": 0.1, "extension": 2.0}, {"moment": 0.1, "rotation": 1.0},
+                  {"force": 1.0}, {}, {"force": 1.0, "moment": 0.0, "rotation": 1.0}):
+        with pytest.raises(ValueError, match="bulk_helix: give one of the pairs"):
+            hr.bulk_helix(SPRING, 10.0, **given)
+    with pytest.raises(ValueError, match="bulk_helix: length must be finite and > 0"):
+        hr.bulk_helix(SPRING, 0.0, force=0.0, moment=0.0)
+    with pytest.raises(ValueError, match="bulk_helix: moment must be finite"):
+        hr.bulk_helix(SPRING, 10.0, force=0.0, moment=np.nan)
+
+
+def test_throw_false_reports_a_failure_in_ok():
+    """An extension longer than the rod has no helix: `ok` is False with throw=False, a
+    SolverError with throw=True; a solvable pair is `ok`."""
+    length = 2 * TURN
+    theta0 = float(hr.unloaded_observables(SPRING, length)[1])
+    bad = hr.bulk_helix(SPRING, length, extension=1.5 * length, rotation=theta0, throw=False)
+    assert not bool(bad.ok) and hr.RESULTS[bad.result]
+    with pytest.raises(hr.SolverError, match="bulk_helix"):
+        hr.bulk_helix(SPRING, length, extension=1.5 * length, rotation=theta0)
+    good = hr.bulk_helix(SPRING, length, force=0.01, moment=0.0, throw=False)
+    assert bool(good.ok) and good.result == hr.RESULTS.successful

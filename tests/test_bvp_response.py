@@ -1,0 +1,213 @@
+"""End-response curves of finite springs (force_extension, rotation_response, axial_response)
+against the bulk helix, against each other, and point by point.
+
+Compiled programs: the curves of the spring at fixed rotation share one jitted function
+(`tweezer_curve`, one trace for all lengths, forces and tolerances); the eager curves with
+4 segments and 4 points share another, whatever their pair of controls.  Independent-mode
+curves compile programs of their own: those tests are slow.
+"""
+
+import json
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import SPRING, SPRING_NORM, SPRING_TURN as TURN, tree_allclose
+from typer.testing import CliRunner
+
+import helixrod as hr
+from helixrod.cli import app
+
+FORCES = jnp.array([0.0, 0.01, 0.02, 0.03])
+DEFAULT_OPTIONS = hr.BoundaryValueOptions()
+
+
+def tweezer_curve(length, forces, options=DEFAULT_OPTIONS):
+    """Force-extension of the spring at fixed (unturned) end rotation; one trace for all
+    lengths, forces and tolerances (the options' tolerances are arrays, so traced)."""
+    return _tweezer_curve(length, forces, options)
+
+
+@eqx.filter_jit
+@eqx.debug.assert_max_traces(max_traces=1)
+def _tweezer_curve(length, forces, options):
+    return hr.force_extension(SPRING, length, forces, rotation=length * SPRING_NORM, segments=4, options=options)
+
+
+def test_response_curves_converge_to_the_bulk_helix():
+    """The end effect of the clamps on the extension converges to a constant as the rod
+    grows (so its share of the total falls like 1/L); the torque tends to the bulk one."""
+    lengths = [2 * TURN, 4 * TURN, 8 * TURN, 16 * TURN]
+    curves = [tweezer_curve(jnp.asarray(length), FORCES) for length in lengths]
+    for c in curves:
+        assert bool(jnp.all(c.ok)) and bool(jnp.all(c.bulk_ok))
+        np.testing.assert_allclose(c.force, FORCES, atol=1e-12)
+        np.testing.assert_allclose(c.rotation, c.length * SPRING_NORM, atol=1e-8)
+        np.testing.assert_allclose(c.extension[0], c.bulk_extension[0], atol=1e-9)  # unloaded
+    dh = np.array([np.asarray(c.end_effect("extension")) for c in curves])[:, 1:]
+    dM = np.array([np.asarray(c.end_effect("moment")) for c in curves])[:, 1:]
+    # Extension: the end effect settles (boundary layers decay along the stretched spring).
+    assert np.all(np.abs(dh[3] - dh[2]) < 0.25 * np.abs(dh[1] - dh[0]))
+    relative = np.abs(dh) / np.array(lengths)[:, None]
+    assert np.all(np.diff(relative[1:], axis=0) < 0)
+    # Torque: the clamps' share falls like 1/L.
+    ratio = dM[3] / dM[2]
+    np.testing.assert_allclose(ratio, 0.5, atol=0.1)
+    # The bulk prediction is the uniform helix with the same force and rotation per length.
+    bulk = hr.bulk_helix(SPRING, lengths[0], force=0.02, rotation=lengths[0] * SPRING_NORM)
+    np.testing.assert_allclose(curves[0].bulk_extension[2], bulk.extension, rtol=1e-12)
+
+
+def test_changing_tolerances_does_not_retrace():
+    """The options travel as an argument of the jitted curve: other tolerances reuse its one
+    trace (assert_max_traces) and take effect (each solution's tolerance is 10 atol)."""
+    length = jnp.asarray(2 * TURN)
+    default = tweezer_curve(length, FORCES)
+    options = [hr.BoundaryValueOptions(atol=1e-8, ode_rtol=1e-8, ode_atol=1e-8),
+               hr.BoundaryValueOptions(atol=1e-12, ode_rtol=1e-12, ode_atol=1e-12)]
+    for opts in options:
+        curve = tweezer_curve(length, FORCES, opts)  # a second trace would raise
+        assert bool(jnp.all(curve.ok))
+        np.testing.assert_allclose(curve.solutions.tolerance, 10 * float(opts.atol), rtol=1e-15)
+        np.testing.assert_allclose(curve.extension, default.extension, atol=1e-6)
+    np.testing.assert_allclose(default.solutions.tolerance, 1e-9, rtol=1e-15)
+
+
+def test_force_extension_command(tmp_path):
+    """`helixrod force-extension` (tests/test_cli.py has the other commands); its eager 4-segment
+    curve is the compiled program of the next test."""
+    out = tmp_path / "curve.json"
+    args = ["force-extension", "--turns", "2", "--forces", "0:0.03:4", "--segments", "4", "--out", str(out)]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "force-extension" in result.output and "rotation held" in result.output
+    curve = json.loads(out.read_text())
+    direct = tweezer_curve(jnp.asarray(2 * TURN), jnp.linspace(0.0, 0.03, 4))
+    np.testing.assert_allclose(curve["extension"], direct.extension, atol=1e-9)
+    bad = CliRunner().invoke(app, ["force-extension", "--uhat", "0,0,0"])
+    assert bad.exit_code != 0 and "must not be zero" in bad.output
+
+
+def test_rotation_response_agrees_with_force_extension():
+    """Both curve functions solve the same problems (they share one compiled program with the
+    command above): the
+    same (force, rotation) point agrees; the torque grows with the turn and follows the bulk
+    helix; a spring twisted between grips at fixed extension too."""
+    length = 2 * TURN
+    theta0 = length * SPRING_NORM
+    turns = theta0 + jnp.array([-0.5, 0.0, 0.5, 1.0])
+    twisted = hr.rotation_response(SPRING, length, turns, force=0.01, segments=4)
+    pulled = hr.force_extension(SPRING, length, jnp.array([0.0, 0.005, 0.01, 0.02]), rotation=theta0, segments=4)
+    assert bool(jnp.all(twisted.ok)) and bool(jnp.all(pulled.ok))
+    np.testing.assert_allclose(twisted.rotation, turns, atol=1e-9)
+    np.testing.assert_allclose(twisted.force, 0.01, atol=1e-12)
+    np.testing.assert_allclose(twisted.extension[1], pulled.extension[2], atol=1e-9)
+    np.testing.assert_allclose(twisted.moment[1], pulled.moment[2], atol=1e-10)
+    assert np.all(np.diff(np.asarray(twisted.moment)) > 0)
+    np.testing.assert_allclose(twisted.moment, twisted.bulk_moment, rtol=0, atol=1e-3 * float(jnp.abs(twisted.moment).max()))
+    h0 = length * 0.3 / SPRING_NORM
+    gripped = hr.rotation_response(SPRING, length, turns, extension=1.05 * h0, segments=4)
+    assert bool(jnp.all(gripped.ok))
+    np.testing.assert_allclose(gripped.extension, 1.05 * h0, atol=1e-9)
+    np.testing.assert_allclose(gripped.force, gripped.bulk_force, rtol=0.1)
+    assert np.all(np.diff(np.asarray(gripped.moment)) > 0)
+
+
+def test_response_curve_flags_a_bad_point_without_spoiling_the_others():
+    length = jnp.asarray(2 * TURN)
+    clean = tweezer_curve(length, FORCES)
+    bad = tweezer_curve(length, FORCES.at[1].set(jnp.nan))
+    assert not bool(bad.ok[1]) and bool(jnp.isnan(bad.extension[1]))
+    keep = np.array([0, 2, 3])
+    assert bool(jnp.all(bad.ok[keep]))
+    np.testing.assert_allclose(bad.extension[keep], clean.extension[keep], atol=1e-9)
+
+
+# -- axial_response: any sequence of control pairs ------------------------------------------
+
+POINT_FIELDS = ("force", "moment", "extension", "rotation", "bulk_force", "bulk_moment", "bulk_extension",
+                "bulk_rotation", "ok", "bulk_ok")
+
+
+def point(curve, i):
+    """The fields of point `i` of a curve, as a dict (for tree_allclose)."""
+    return {name: getattr(curve, name)[i] for name in POINT_FIELDS}
+
+
+@pytest.mark.parametrize(
+    "mode, segments",
+    [
+        ("continuation", 4),  # the eager program of the test above: no compilation of its own
+        pytest.param("independent", 1, marks=pytest.mark.slow),  # compiles the vmapped curve (~15 s)
+    ],
+)
+def test_axial_response_with_both_controls_varying_equals_force_extension(mode, segments):
+    """Force and rotation both varying along one curve: each point equals that point of
+    force_extension at its (held) rotation, in either mode (the same compiled program for
+    both functions)."""
+    length = 2 * TURN
+    theta0 = length * SPRING_NORM
+    forces = jnp.array([0.005, 0.01, 0.02, 0.03])
+    rotations = theta0 + jnp.array([0.0, 0.3, -0.3, 0.6])
+    both = hr.axial_response(SPRING, length, force=forces, rotation=rotations, mode=mode, segments=segments)
+    assert both.controls == "force-rotation" and both.swept == "force" and both.held == "rotation"
+    assert bool(jnp.all(both.ok)) and bool(jnp.all(both.bulk_ok))
+    np.testing.assert_allclose(both.force, forces, atol=1e-12)
+    np.testing.assert_allclose(both.rotation, rotations, atol=1e-9)
+    for i in range(4):
+        held = hr.force_extension(SPRING, length, forces, rotation=rotations[i], mode=mode, segments=segments)
+        tree_allclose(point(both, i), point(held, i), rtol=0, atol=1e-9)
+    # The responses move with both controls: not a trivially constant curve.
+    assert float(jnp.ptp(both.moment)) > 1e-3 and float(jnp.ptp(both.extension)) > 1e-2
+
+
+@pytest.mark.slow  # compiles the independent-mode curve without bulk (~15 s on 2 busy cores)
+def test_axial_response_rotation_hint_and_no_bulk():
+    """Force and moment held (a Loaded end: the rotation responds), independent points.
+    `rotation_hint` picks the whole turns of the reported rotation (nearest the hint);
+    `bulk=False` leaves the bulk fields NaN; neither changes the solutions, which equal the
+    continuation curve's (the eager 4-segment program above).  Both options apply to
+    mode='independent' only."""
+    length = 2 * TURN
+    forces = jnp.array([0.0, 0.01, 0.02, 0.03])
+    reference = hr.axial_response(SPRING, length, force=forces, moment=0.0, segments=4)
+    assert reference.controls == "force-moment" and bool(jnp.all(reference.ok))
+    hints = reference.bulk_rotation
+    near = hr.axial_response(SPRING, length, force=forces, moment=0.0, mode="independent", rotation_hint=hints, bulk=False)
+    turned = hr.axial_response(SPRING, length, force=forces, moment=0.0, mode="independent",
+                               rotation_hint=hints + 2 * np.pi, bulk=False)
+    for curve in (near, turned):
+        assert bool(jnp.all(curve.ok)) and not bool(jnp.any(curve.bulk_ok))
+        assert bool(jnp.all(jnp.isnan(curve.bulk_extension))) and bool(jnp.all(jnp.isnan(curve.bulk_rotation)))
+        np.testing.assert_allclose(curve.force, forces, atol=1e-12)
+        for name in ("moment", "extension"):
+            np.testing.assert_allclose(getattr(curve, name), getattr(reference, name), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(near.rotation, reference.rotation, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(turned.rotation, reference.rotation + 2 * np.pi, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(turned.rotation - near.rotation, 2 * np.pi, rtol=0, atol=1e-12)
+    assert float(jnp.ptp(near.rotation)) > 0.01  # the rotation responds to the force
+    with pytest.raises(ValueError, match="apply to mode='independent'"):
+        hr.axial_response(SPRING, length, force=forces, moment=0.0, rotation_hint=hints)
+    with pytest.raises(ValueError, match="apply to mode='independent'"):
+        hr.axial_response(SPRING, length, force=forces, moment=0.0, bulk=False)
+
+
+# -- errors ---------------------------------------------------------------------------------
+
+
+def test_bad_curve_arguments_raise_clear_errors():
+    with pytest.raises(ValueError, match="give moment= or rotation=, not both"):
+        hr.force_extension(SPRING, 10.0, FORCES, moment=0.0, rotation=1.0)
+    with pytest.raises(ValueError, match="forces must be finite"):
+        hr.force_extension(SPRING, 10.0, FORCES.at[0].set(jnp.nan))
+    with pytest.raises(ValueError, match="exactly one of force= or extension="):
+        hr.rotation_response(SPRING, 10.0, jnp.ones(3))
+    with pytest.raises(ValueError, match="mode"):
+        hr.force_extension(SPRING, 10.0, FORCES, mode="parallel")
+    with pytest.raises(ValueError, match="axial_response: give one of the pairs"):
+        hr.axial_response(SPRING, 10.0, force=FORCES, extension=1.0)
+    with pytest.raises(ValueError, match="the controls do not broadcast"):
+        hr.axial_response(SPRING, 10.0, force=FORCES, rotation=jnp.ones(3))
+    with pytest.raises(ValueError, match="unknown observable"):
+        tweezer_curve(jnp.asarray(2 * TURN), FORCES).end_effect("torque")

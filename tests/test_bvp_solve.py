@@ -1,0 +1,333 @@
+"""Boundary-value solves of finite rods (solve_boundary_value, BoundaryValueOptions).
+
+Independent references: the initial-value solver (`solve_static`), exact uniform helices
+(`helix_frame`, `helix_centreline`, `helix_residual`), scipy `solve_bvp` on a numpy right-hand
+side, central differences.  To keep the default run short, the solves share a few compiled
+programs: every eager `solve` call below has 9 save points and a `(n0, m0)` guess
+(`helpers.solve`: one compilation for all end types, one more with 3 segments, and, slow,
+one for a vmapped batch of mixed end kinds).
+"""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import (
+    BVP_ROD as ROD, NSAVE, SPRING, SPRING_NORM, SPRING_TURN as TURN, ivp, loaded_helix, solve, tree_allclose,
+)
+from scipy.integrate import solve_bvp
+
+import helixrod as hr
+from helixrod._bvp import stack_ends
+
+
+def test_loaded_end_reproduces_the_initial_value_solution():
+    """Integrate from a wrench, read the end load, solve the BVP from a wrong guess."""
+    start = hr.Clamped((0.2, -0.1, 0.3), hr.so3_exp(jnp.array([0.3, -0.2, 0.5])))
+    n1, m1 = jnp.array([0.05, -0.1, 0.08]), jnp.array([0.1, 0.05, -0.07])
+    length = 4.0
+    ref = ivp(ROD, n1, m1, length, start, tol=1e-12)
+    N, M = ref.lab_wrench()
+    point = jnp.array([1.0, 2.0, -0.5])
+    ends = [
+        hr.Loaded(N[-1], M[-1]),  # moment about the end itself
+        hr.Loaded(N[-1], M[-1] + jnp.cross(ref.x[-1] - point, N[-1]), point=point),  # about a fixed point
+    ]
+    for end in ends:
+        sol = solve(ROD, length, start, end, (n1 + 0.03, m1 - 0.03), atol=1e-12, ode_rtol=1e-12, ode_atol=1e-12)
+        assert bool(sol.ok), sol.result
+        if end.point is not None:
+            # About a fixed point the shooting equations are linear (the moment about it is
+            # conserved): with the Newton Jacobian integrated at 1e-6 (`_jacobian_tolerance`)
+            # each step gains about six digits, so two steps, a round-off correction at
+            # atol = 1e-12, and the check.
+            assert int(sol.num_steps) <= 4
+        np.testing.assert_allclose(sol.n0, n1, atol=1e-10)
+        np.testing.assert_allclose(sol.m0, m1, atol=1e-9)
+        np.testing.assert_allclose(sol.x, ref.x, atol=1e-9)
+        np.testing.assert_allclose(sol.frame, ref.frame, atol=1e-9)
+        np.testing.assert_allclose(sol.end_force, N[-1], atol=1e-10)
+        np.testing.assert_allclose(sol.x[0], start.position, atol=1e-15)
+
+
+def test_rod_cut_from_a_uniform_helix_is_that_helix():
+    """A piece of a loaded uniform helix, with the helix's own end conditions, is the helix,
+    for every kind of end condition and for single and multiple shooting."""
+    kappa, tau, phi, n, m = loaded_helix(ROD, 0.05, 0.02)
+    length = 9.0
+    s = jnp.linspace(0.0, length, NSAVE)
+    exact_x, exact_frame = hr.helix_centreline(kappa, tau, s), hr.helix_frame(kappa, tau, phi, s)
+    start = hr.Clamped(exact_x[0], exact_frame[0])
+    D = exact_frame[-1]
+    ends = {
+        "clamped": hr.Clamped(exact_x[-1], D),
+        "loaded": hr.Loaded(D @ n, D @ m),
+        "tweezer": hr.Tweezer(D, D @ n),
+    }
+    guess = (n + 0.01, m - 0.01)
+    for name, end in ends.items():
+        for segments in ((1, 3) if name == "clamped" else (1,)):
+            sol = solve(ROD, length, start, end, guess, segments=segments)
+            assert bool(sol.ok), (name, segments, sol.result)
+            np.testing.assert_allclose(sol.x, exact_x, atol=1e-8, err_msg=name)
+            np.testing.assert_allclose(sol.frame, exact_frame, atol=1e-8, err_msg=name)
+            np.testing.assert_allclose(sol.n, jnp.broadcast_to(n, sol.n.shape), atol=1e-9, err_msg=name)
+            np.testing.assert_allclose(sol.m, jnp.broadcast_to(m, sol.m.shape), atol=1e-9, err_msg=name)
+
+
+def scipy_clamped(rod, length, start, end, mesh=81, tol=1e-9):
+    """scipy solve_bvp on the 18 unknowns (n, m, D row-major, x), from the unloaded helix."""
+    K, uhat = np.asarray(rod.K), np.asarray(rod.uhat)
+    K_inv = np.linalg.inv(K)
+    e3 = np.array([0.0, 0.0, 1.0])
+
+    def fun(s, y):
+        n, m, D = y[:3], y[3:6], y[6:15].reshape(3, 3, -1)
+        u = uhat[:, None] + K_inv @ m
+        dn = -np.cross(u.T, n.T).T
+        dm = (-np.cross(u.T, m.T) - np.cross(e3, n.T)).T
+        hat = np.zeros((3, 3, u.shape[1]))
+        hat[0, 1], hat[0, 2], hat[1, 0], hat[1, 2], hat[2, 0], hat[2, 1] = -u[2], u[1], u[2], -u[0], -u[1], u[0]
+        dD = np.einsum("ijs,jks->iks", D, hat).reshape(9, -1)
+        return np.concatenate([dn, dm, dD, D[:, 2]])
+
+    P, R, D0, x0 = (np.asarray(a) for a in (end.position, end.frame, start.frame, start.position))
+
+    def bc(ya, yb):
+        Db = yb[6:15].reshape(3, 3)
+        A = R.T @ Db
+        return np.concatenate([ya[6:15] - D0.ravel(), ya[15:] - x0, yb[15:] - P, 0.5 * np.array([A[2, 1] - A[1, 2], A[0, 2] - A[2, 0], A[1, 0] - A[0, 1]])])
+
+    s = np.linspace(0.0, length, mesh)
+    x_free, frame_free = (np.asarray(a) for a in hr.unloaded_state(rod, jnp.asarray(s)))
+    y = np.concatenate([np.zeros((6, mesh)), frame_free.reshape(mesh, 9).T, x_free.T])
+    out = solve_bvp(fun, bc, s, y, tol=tol, max_nodes=20_000)
+    assert out.success, out.message
+    return out
+
+
+def test_clamped_clamped_satisfies_its_conditions_and_matches_scipy():
+    length = 1.2 * TURN
+    h0, theta0 = (float(a) for a in hr.unloaded_observables(ROD, length))
+    start, end = hr.axial_ends(ROD, length, extension=1.08 * h0, rotation=theta0 + 0.4)
+    sol = solve(ROD, length, start, end, (jnp.zeros(3), jnp.zeros(3)))
+    assert bool(sol.ok), sol.result
+    # The conditions ...
+    np.testing.assert_allclose(sol.x[0], start.position, atol=1e-14)
+    np.testing.assert_allclose(sol.frame[0], start.frame, atol=1e-14)
+    np.testing.assert_allclose(sol.end_position, end.position, atol=1e-9)
+    np.testing.assert_allclose(sol.end_frame, end.frame, atol=1e-9)
+    # ... hold for an equilibrium: integrating its start wrench gives the same rod.
+    ref = ivp(ROD, sol.n0, sol.m0, length, start)
+    np.testing.assert_allclose(sol.x, ref.x, atol=1e-8)
+    # scipy's collocation solver, from the unloaded helix, finds the same solution.
+    out = scipy_clamped(ROD, length, start, end)
+    y = out.sol(np.asarray(sol.s))
+    np.testing.assert_allclose(sol.x, y[15:].T, atol=1e-6)
+    np.testing.assert_allclose(sol.n0, y[:3, 0], atol=1e-6)
+    np.testing.assert_allclose(sol.m0, y[3:6, 0], atol=1e-6)
+    frames = y[6:15].T.reshape(-1, 3, 3)
+    np.testing.assert_allclose(sol.frame, frames, atol=1e-6)
+
+
+def test_unloaded_axial_ends_solve_to_the_unloaded_helix():
+    """Unloaded controls give the unloaded helix exactly (n = m = 0), in every kind."""
+    length = 2.5 * TURN
+    theta0 = float(hr.unloaded_observables(SPRING, length)[1])
+    start, free = hr.axial_ends(SPRING, length, force=0.0, moment=0.0)
+    for end in (free, hr.axial_ends(SPRING, length, force=0.0, rotation=theta0)[1]):
+        sol = solve(SPRING, length, start, end, (jnp.full(3, 0.01), jnp.full(3, -0.01)))
+        assert bool(sol.ok)
+        np.testing.assert_allclose(sol.n0, 0.0, atol=1e-10)
+        np.testing.assert_allclose(sol.m0, 0.0, atol=1e-10)
+        np.testing.assert_allclose(sol.x, hr.helix_centreline(1.0, 0.3, sol.s), atol=1e-9)
+
+
+@pytest.mark.slow  # compiles the vmapped solve (~20 s on 2 busy cores); the single solves share `solve`
+def test_vmapped_solve_over_mixed_end_kinds_equals_single_solves():
+    """A stack of the four kinds of end (clamped, loaded about the end and about a point,
+    tweezer) of a piece of a loaded uniform helix, solved in one vmapped call, equals the
+    single solves point for point -- and the helix."""
+    kappa, tau, phi, n, m = loaded_helix(ROD, 0.05, 0.02)
+    length = 9.0
+    s = jnp.linspace(0.0, length, NSAVE)
+    exact_x, exact_frame = hr.helix_centreline(kappa, tau, s), hr.helix_frame(kappa, tau, phi, s)
+    start = hr.Clamped(exact_x[0], exact_frame[0])
+    D, P = exact_frame[-1], jnp.array([0.5, -1.0, 2.0])
+    ends = [
+        hr.Clamped(exact_x[-1], D),
+        hr.Loaded(D @ n, D @ m),
+        hr.Loaded(D @ n, D @ m + jnp.cross(exact_x[-1] - P, D @ n), point=P),
+        hr.Tweezer(D, D @ n),
+    ]
+    guess = (n + 0.01, m - 0.01)
+    stacked = stack_ends(ends)
+    assert isinstance(stacked, hr.EndCondition) and stacked.kind.tolist() == [0, 1, 1, 2]
+    batch = jax.vmap(lambda end: solve(ROD, length, start, end, guess, throw=False))(stacked)
+    assert bool(jnp.all(batch.ok))
+    for i, end in enumerate(ends):
+        single = solve(ROD, length, start, end, guess)
+        tree_allclose(jax.tree.map(lambda a: a[i], batch), single, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(batch.x[i], exact_x, atol=1e-8)
+        np.testing.assert_allclose(batch.frame[i], exact_frame, atol=1e-8)
+
+
+# -- options ---------------------------------------------------------------------------------
+
+
+def test_options_reject_bad_values():
+    for kwargs, match in [
+        ({"segments": 0}, "segments must be an integer >= 1"),
+        ({"segments": 2.0}, "segments must be an integer"),
+        ({"continuation": -1}, "continuation must be an integer >= 0"),
+        ({"max_steps": 0}, "max_steps must be an integer >= 1"),
+        ({"method": "bisection"}, "method must be one of"),
+        ({"solver": diffrax.Tsit5()}, "solver must be CommutatorFreeRK4 or MuntheKaasRK"),
+        ({"adjoint": diffrax.RecursiveCheckpointAdjoint()}, "adjoint must be diffrax.ForwardMode"),
+        ({"atol": 0.0}, "atol must be finite and > 0"),
+        ({"ode_rtol": np.nan}, "ode_rtol must be finite and > 0"),
+        ({"ode_atol": jnp.ones(2)}, "ode_atol must be a scalar"),
+    ]:
+        with pytest.raises(ValueError, match="BoundaryValueOptions: " + match):
+            hr.BoundaryValueOptions(**kwargs)
+    # Through the entry points' keywords too, and for something that is not options.
+    start, end = hr.axial_ends(SPRING, 10.0, force=0.01, moment=0.0)
+    with pytest.raises(ValueError, match="BoundaryValueOptions: atol"):
+        hr.solve_boundary_value(SPRING, 10.0, end=end, atol=-1.0)
+    with pytest.raises(ValueError, match="options must be a BoundaryValueOptions"):
+        hr.solve_boundary_value(SPRING, 10.0, end=end, options={"segments": 2})
+
+
+def test_keywords_override_the_options():
+    """`options=` with a keyword: the keyword replaces that field, the others stay (the
+    clamped helix of the test above, with the 3-segment configuration compiled there)."""
+    kappa, tau, phi, n, m = loaded_helix(ROD, 0.05, 0.02)
+    length = 9.0
+    s = jnp.linspace(0.0, length, NSAVE)
+    exact_x, exact_frame = hr.helix_centreline(kappa, tau, s), hr.helix_frame(kappa, tau, phi, s)
+    start, end = hr.Clamped(exact_x[0], exact_frame[0]), hr.Clamped(exact_x[-1], exact_frame[-1])
+    options = hr.BoundaryValueOptions(segments=1, atol=1e-11)
+    sol = solve(ROD, length, start, end, (n + 0.01, m - 0.01), options=options, segments=3)
+    assert sol.segments == 3 and sol.node_position.shape == (3, 3)
+    np.testing.assert_allclose(sol.tolerance, 10 * 1e-11, rtol=1e-15)  # atol from the options
+    assert bool(sol.ok) and float(sol.residual) <= 1e-10
+    np.testing.assert_allclose(sol.x, exact_x, atol=1e-8)
+    assert options.segments == 1  # the options themselves are unchanged
+
+
+# -- derivatives ----------------------------------------------------------------------------
+
+
+def test_gradients_through_the_boundary_value_solve_match_central_differences():
+    length = 1.5 * TURN
+    h0, theta0 = (float(a) for a in hr.unloaded_observables(SPRING, length))
+    tight = dict(atol=1e-12, ode_rtol=1e-12, ode_atol=1e-12)
+
+    def outputs(K3, extension):
+        rod = eqx.tree_at(lambda r: r.K3, SPRING, jnp.asarray(K3))  # an array: no recompilation
+        start, end = hr.axial_ends(rod, length, extension=extension, rotation=theta0 + 0.2)
+        sol = solve(rod, length, start, end, (jnp.zeros(3), jnp.zeros(3)), **tight)
+        return jnp.concatenate([sol.force, sol.moment0, sol.x[NSAVE // 2]])
+
+    x = (jnp.asarray(0.77), jnp.asarray(1.1 * h0))
+    J = jax.jit(jax.jacfwd(outputs, argnums=(0, 1)))(*x)
+    for i, eps in enumerate((1e-4, 1e-4)):
+        plus = list(x)
+        minus = list(x)
+        plus[i] = plus[i] + eps
+        minus[i] = minus[i] - eps
+        fd = (outputs(*plus) - outputs(*minus)) / (2 * eps)
+        np.testing.assert_allclose(J[i], fd, rtol=1e-6, atol=1e-9 * float(jnp.abs(fd).max()))
+        assert float(jnp.abs(fd).max()) > 1e-3  # the derivative is not trivially zero
+
+
+# -- errors ---------------------------------------------------------------------------------
+
+
+def test_bad_input_raises_clear_errors():
+    start, end = hr.axial_ends(SPRING, 10.0, force=0.01, moment=0.0)
+    with pytest.raises(ValueError, match="length must be finite and > 0"):
+        hr.solve_boundary_value(SPRING, -1.0, end=end)
+    with pytest.raises(ValueError, match="length must be finite"):
+        hr.solve_boundary_value(SPRING, jnp.nan, end=end)
+    with pytest.raises(ValueError, match="end must be Clamped, Loaded or Tweezer"):
+        hr.solve_boundary_value(SPRING, 10.0, end=(1.0, 2.0))
+    with pytest.raises(ValueError, match="start must be Clamped"):
+        hr.solve_boundary_value(SPRING, 10.0, start=end, end=end)
+    with pytest.raises(ValueError, match="method"):
+        hr.solve_boundary_value(SPRING, 10.0, end=end, method="bisection")
+    with pytest.raises(ValueError, match="segments"):
+        hr.solve_boundary_value(SPRING, 10.0, end=end, segments=0)
+    with pytest.raises(ValueError, match="guess"):
+        hr.solve_boundary_value(SPRING, 10.0, end=end, guess="bulk")
+    with pytest.raises(ValueError, match="guess .n0, m0. needs shapes"):
+        hr.solve_boundary_value(SPRING, 10.0, end=end, guess=(jnp.zeros(2), jnp.zeros(3)))
+    with pytest.raises(ValueError, match="saveat must increase"):
+        hr.solve_boundary_value(SPRING, 10.0, end=end, saveat=jnp.array([0.0, 5.0, 4.0]))
+    with pytest.raises(ValueError, match="saveat must increase strictly within"):
+        hr.solve_boundary_value(SPRING, 10.0, end=end, saveat=jnp.array([0.0, 11.0]))
+    with pytest.raises(ValueError, match="adjoint"):
+        hr.solve_boundary_value(SPRING, 10.0, end=end, adjoint=diffrax.RecursiveCheckpointAdjoint())
+    with pytest.raises(ValueError, match="one rod"):
+        hr.solve_boundary_value(hr.Rod(jnp.ones(2), 1.0, 1.0), 10.0, end=end)
+
+
+def test_failed_solve_raises_with_throw_and_reports_without():
+    """A clamped-clamped spring stretched far beyond its length has no solution."""
+    length = 1.0 * TURN
+    start, end = hr.axial_ends(SPRING, length, extension=2 * length, rotation=length * SPRING_NORM)
+    sol = solve(SPRING, length, start, end, (jnp.zeros(3), jnp.zeros(3)), throw=False)
+    assert not bool(sol.ok) and float(sol.residual) > 1e-3
+    with pytest.raises(Exception, match="shooting equations were not solved"):
+        jax.block_until_ready(solve(SPRING, length, start, end, (jnp.zeros(3), jnp.zeros(3))))
+
+
+def test_failure_is_a_solver_error_naming_the_result():
+    """The same failure: `SolverError` (a RuntimeError) naming the result's message and the
+    hint (the traced case: tests/test_status.py)."""
+    length = 1.0 * TURN
+    start, end = hr.axial_ends(SPRING, length, extension=2 * length, rotation=length * SPRING_NORM)
+    sol = solve(SPRING, length, start, end, (jnp.zeros(3), jnp.zeros(3)), throw=False)
+    message = hr.RESULTS[sol.result]
+    assert message  # not successful
+    with pytest.raises(hr.SolverError, match="shooting equations were not solved") as error:
+        solve(SPRING, length, start, end, (jnp.zeros(3), jnp.zeros(3)))
+    assert message in str(error.value) and "throw=False" in str(error.value)
+    assert isinstance(error.value, RuntimeError)
+
+
+# -- slow -----------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_reverse_mode_with_direct_adjoint_matches_forward_mode():
+    length = 1.5 * TURN
+    h0, theta0 = (float(a) for a in hr.unloaded_observables(SPRING, length))
+
+    def outputs(K3, adjoint):
+        rod = eqx.tree_at(lambda r: r.K3, SPRING, K3)
+        start, end = hr.axial_ends(rod, length, extension=1.1 * h0, rotation=theta0)
+        sol = hr.solve_boundary_value(rod, length, start=start, end=end, segments=2, adjoint=adjoint, throw=False)
+        return jnp.concatenate([sol.force, sol.end_moment])
+
+    forward = jax.jit(jax.jacfwd(lambda k: outputs(k, diffrax.ForwardMode())))(0.77)
+    reverse = jax.jit(jax.jacrev(lambda k: outputs(k, diffrax.DirectAdjoint())))(0.77)
+    np.testing.assert_allclose(reverse, forward, rtol=1e-8, atol=1e-9 * float(jnp.abs(forward).max()))
+
+
+@pytest.mark.slow
+def test_multiple_shooting_reaches_where_single_shooting_fails():
+    """A spring stretched at fixed end rotation is spatially unstable (eigenvalues of the
+    linearised wrench flow with real part lambda > 0): single shooting fails at 10 turns,
+    five pieces solve it and satisfy the end conditions."""
+    length = 10 * TURN
+    h0, theta0 = (float(a) for a in hr.unloaded_observables(SPRING, length))
+    start, end = hr.axial_ends(SPRING, length, extension=1.1 * h0, rotation=theta0)
+    single = hr.solve_boundary_value(SPRING, length, start=start, end=end, throw=False)
+    multiple = hr.solve_boundary_value(SPRING, length, start=start, end=end, segments=5, throw=False)
+    assert not bool(single.ok)
+    assert bool(multiple.ok)
+    np.testing.assert_allclose(multiple.end_position, end.position, atol=1e-8)
+    np.testing.assert_allclose(multiple.end_frame, end.frame, atol=1e-8)

@@ -1,0 +1,47 @@
+"""HelixData: the CSV round trip (units, comments) and the documented errors of the
+constructor and of from_csv."""
+
+import jax
+import numpy as np
+import pytest
+from helpers import fit_grid, random_rods
+
+import helixrod as hr
+
+
+def test_csv_round_trip(tmp_path, rng):
+    kappa, tau = fit_grid(rng)
+    rod = random_rods(rng, 1)[0]
+    data = hr.synthetic_helix_data(rod, kappa, tau, 0.05, jax.random.key(5), units={"force": "pN", "kappa": "1/nm"})
+    path = tmp_path / "d.csv"
+    data.to_csv(path, comment="test data")
+    back = hr.HelixData.from_csv(path)
+    for name in ("force", "moment", "kappa", "tau", "force_sigma", "moment_sigma", "register"):
+        np.testing.assert_array_equal(np.asarray(getattr(back, name)), np.asarray(getattr(data, name)))
+    assert back.units["force"] == "pN" and back.units["kappa"] == "1/nm"
+    text = path.read_text().splitlines()
+    assert text[2].startswith("force,moment,kappa,tau") and text[3].startswith("pN,")
+
+
+def test_bad_inputs_give_documented_errors(tmp_path):
+    ok = dict(force=[1.0, 2.0], moment=[0.5, 0.1], kappa=[1.0, 0.5], tau=[0.2, -0.3])
+    with pytest.raises(ValueError, match="mismatched lengths"):
+        hr.HelixData(**{**ok, "tau": [0.1]})
+    with pytest.raises(ValueError, match=r"non-finite.*rows \[1\]"):
+        hr.HelixData(**{**ok, "moment": [0.5, np.nan]})
+    with pytest.raises(ValueError, match=r"force_sigma must be > 0; rows \[0\]"):
+        hr.HelixData(**ok, force_sigma=[0.0, 1.0])
+    with pytest.raises(ValueError, match="kappa must be > 0"):
+        hr.HelixData(**{**ok, "kappa": [-1.0, 0.5]})
+    with pytest.raises(ValueError, match="convention"):
+        hr.HelixData(**ok, convention="lab")
+    flipped = hr.HelixData(**ok, convention="advance")
+    np.testing.assert_array_equal(np.asarray(flipped.force), [1.0, -2.0])
+    path = tmp_path / "bad.csv"
+    path.write_text("force,moment,kappa,tau,force_sigma,moment_sigma\nN,N m,1/m,1/m,N,N m\n1,1,1,1,1,1\n1,nan,1,1,1,1\n")
+    with pytest.raises(ValueError, match=r"lines \[4\]"):
+        hr.HelixData.from_csv(path)
+    path.write_text("force,moment,kappa,tau\n1,1,1,1\n")
+    with pytest.raises(ValueError, match="force_sigma and moment_sigma"):
+        hr.HelixData.from_csv(path)
+    assert len(hr.HelixData.from_csv(path, force_sigma=0.1, moment_sigma=0.1)) == 1

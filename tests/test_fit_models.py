@@ -1,0 +1,101 @@
+"""Forward models of fit_stiffness (helixrod._fit._models) and how the pipeline takes
+solvers: the helix model's residuals and predictions against helix_equilibria evaluated
+here, the data types and options each model accepts, and optimistix solver objects.
+
+The helix fits have the configuration of tests/test_fit_pipeline.py (24 points, the five
+stiffnesses free, uhat fixed: one compilation); the minimiser fit is small (3 points, one
+start, a few steps)."""
+
+import jax
+import numpy as np
+import optax
+import optimistix as optx
+import pytest
+from helpers import SPRING, fit_grid, random_rods
+
+import helixrod as hr
+
+ADAM = optx.OptaxMinimiser(optax.adam(1e-2), rtol=1e-8, atol=1e-8)
+
+
+@pytest.fixture(scope="module")
+def noisy():
+    """Noisy helix data of a random rod, and its default fit."""
+    rng = np.random.default_rng(11)
+    kappa, tau = fit_grid(rng)
+    rod = random_rods(rng, 1)[0]
+    data = hr.synthetic_helix_data(rod, kappa, tau, 0.02, jax.random.key(7))
+    return rod, data, hr.fit_stiffness(data, uhat=rod.uhat)
+
+
+def test_helix_residuals_are_the_normalised_errors_of_the_chosen_registers(noisy):
+    """residuals = ((F_pred - F)/sigma_F, (M_pred - M)/sigma_M) with F_pred, M_pred those of
+    helix_equilibria of the fitted rod at the register slot the model chose (the one nearest
+    the observation in sigma units, the default branch)."""
+    rod, data, fit = noisy
+    assert fit.ok, fit.message
+    assert set(fit.predicted) == {"force", "moment", "register", "slot"}
+    slot = np.asarray(fit.predicted["slot"])
+    eq = hr.helix_equilibria(fit.rod, data.kappa, data.tau)  # the shapes of synthetic_helix_data: compiled
+    rows = np.arange(len(data))
+    assert np.all(np.asarray(eq.valid)[rows, slot])
+    F, M, phi = (np.asarray(a)[rows, slot] for a in (eq.force, eq.moment, eq.phi))
+    np.testing.assert_allclose(fit.predicted["force"], F, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(fit.predicted["moment"], M, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(fit.predicted["register"], phi, rtol=1e-12, atol=1e-14)
+    F_obs, M_obs = np.asarray(data.force), np.asarray(data.moment)
+    sF, sM = np.asarray(data.force_sigma), np.asarray(data.moment_sigma)
+    expected = np.concatenate([(F - F_obs) / sF, (M - M_obs) / sM])
+    np.testing.assert_allclose(fit.residuals, expected, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(fit.cost, 0.5 * np.sum(expected**2), rtol=1e-9)
+    # The chosen slot is the nearest register in sigma units.
+    dist = np.where(np.asarray(eq.valid), ((np.asarray(eq.force) - F_obs[:, None]) / sF[:, None]) ** 2
+                    + ((np.asarray(eq.moment) - M_obs[:, None]) / sM[:, None]) ** 2, np.inf)
+    np.testing.assert_array_equal(slot, np.argmin(dist, axis=1))
+
+
+def test_solver_objects(noisy):
+    """An optimistix least-squares solver object equal to the default alias gives the same
+    fit; a minimiser is accepted for helix data; rtol= with an object is an error."""
+    rod, data, fit = noisy
+    same = hr.fit_stiffness(data, uhat=rod.uhat, solver=optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12))
+    assert same.method == "LevenbergMarquardt" and fit.method == "levenberg-marquardt"
+    for name in fit.names:
+        np.testing.assert_allclose(float(same.params[name]), float(fit.params[name]), rtol=1e-12)
+        np.testing.assert_allclose(float(same.stderr[name]), float(fit.stderr[name]), rtol=1e-10)
+    np.testing.assert_allclose(same.residuals, fit.residuals, rtol=1e-10, atol=1e-12)
+    small = hr.HelixData(data.force[:3], data.moment[:3], data.kappa[:3], data.tau[:3], data.force_sigma[:3],
+                         data.moment_sigma[:3])
+    adam = hr.fit_stiffness(small, uhat=rod.uhat, solver=ADAM, n_starts=1, max_steps=8)
+    assert adam.method == "OptaxMinimiser" and adam.n_steps == 8 and np.isfinite(adam.cost)
+    assert adam.result == hr.RESULTS.nonlinear_max_steps_reached and "OptaxMinimiser, 8 steps" in adam.message
+    assert len(adam.residuals) == 6 and set(adam.predicted) == {"force", "moment", "register", "slot"}
+    with pytest.raises(ValueError, match="apply to solvers given by name"):
+        hr.fit_stiffness(data, solver=optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12), rtol=1e-8)
+    with pytest.raises(ValueError, match="apply to solvers given by name"):
+        hr.fit_stiffness(data, solver=ADAM, learning_rate=0.1)
+    with pytest.raises(ValueError, match="an optimistix least-squares solver or minimiser, got Newton"):
+        hr.fit_stiffness(data, solver=optx.Newton(rtol=1e-8, atol=1e-8))  # a root finder
+
+
+def test_data_types_and_options_of_the_models():
+    end = hr.axial_ends(SPRING, 10.0, force=0.01, moment=0.0)[1]
+    shape = hr.ShapeData(1.0, [0.0, 0.5, 1.0], np.zeros((3, 3)), end, sigma=0.1)
+    response = hr.EndResponseData(10.0, [0.01, 0.02], [0.0, 0.0], [1.0, 1.0], [1.0, 1.0], controls="force-moment",
+                                  extension_sigma=0.1, rotation_sigma=0.1)
+    for data in (shape, response):
+        with pytest.raises(ValueError, match="applies to HelixData only"):
+            hr.fit_stiffness(data, branch="stable")
+        with pytest.raises(ValueError, match="errors_in_variables= applies to HelixData only"):
+            hr.fit_stiffness(data, errors_in_variables=True)
+        for solver in ("adam", "lbfgs", ADAM):
+            with pytest.raises(ValueError, match="is not available for finite-rod data"):
+                hr.fit_stiffness(data, solver=solver)
+    for bad in ({"force": [1.0]}, np.ones((3, 4)), None):
+        with pytest.raises(ValueError, match="data must be a HelixData, EndResponseData or ShapeData, got"):
+            hr.fit_stiffness(bad)
+    helix = hr.HelixData(force=[1.0, 2.0], moment=[0.5, 0.1], kappa=[1.0, 0.5], tau=[0.2, -0.3])
+    with pytest.raises(ValueError, match="use_register=True but the data have no register column"):
+        hr.fit_stiffness(helix, use_register=True)
+    with pytest.raises(ValueError, match="errors_in_variables=True needs kappa_sigma"):
+        hr.fit_stiffness(helix, errors_in_variables=True)

@@ -1,0 +1,93 @@
+"""fit_stiffness on helices (the inverse spring problem): noise-free recovery and the
+closed-form linear fit, the command `helixrod fit`, the calibration of its intervals (slow),
+and bad options.
+
+Every fit here shares one compiled configuration (24 points, the five stiffnesses free,
+uhat fixed -- its values are traced, so a new uhat does not recompile), `helixrod fit` on the
+bundled example included; so do the fits of tests/test_fit_symmetry.py, test_fit_bootstrap.py
+and test_fit_models.py."""
+
+import json
+
+import jax
+import numpy as np
+import pytest
+from helpers import FIT_POINTS, fit_grid, parameter_vector, random_rods
+from typer.testing import CliRunner
+
+import helixrod as hr
+from helixrod.cli import app, example_data_path
+
+
+def test_noise_free_recovery_and_linear_fit_agree(rng):
+    kappa, tau = fit_grid(rng)
+    for rod in random_rods(rng, 3):
+        data = hr.synthetic_helix_data(rod, kappa, tau, 0.0, jax.random.key(0))
+        fit = hr.fit_stiffness(data, uhat=rod.uhat)
+        assert fit.ok and fit.cost < 1e-20, (fit.cost, fit.message)
+        assert fit.identifiability.symmetries == ()  # generic fixed uhat breaks them all
+        truth = parameter_vector(rod)
+        np.testing.assert_allclose(parameter_vector(fit.rod), truth, rtol=0, atol=1e-8 * np.abs(truth[:5]).max())
+        assert fit.n_agree >= 1 and fit.n_starts == 32
+        # The same helices with full local vectors: closed-form linear fit, same rod.
+        eq = hr.helix_equilibria(rod, kappa, tau)
+        lin = hr.fit_stiffness_linear(eq.u[:, 0], eq.m[:, 0], uhat=rod.uhat)
+        np.testing.assert_allclose(parameter_vector(lin.rod), parameter_vector(fit.rod), rtol=0, atol=1e-8 * truth[:5].max())
+        lin_u = hr.fit_stiffness_linear(eq.u[:, 0], eq.m[:, 0], fit_uhat=True)
+        np.testing.assert_allclose(parameter_vector(lin_u.rod), truth, rtol=0, atol=1e-9 * np.abs(truth).max())
+
+
+def test_cli_fit_example(tmp_path):
+    """`helixrod fit` on the bundled example (24 points: shares the compiled fit above;
+    tests/test_cli.py has the other commands)."""
+    out, png = tmp_path / "fit.json", tmp_path / "fit.png"
+    result = CliRunner().invoke(app, ["fit", str(example_data_path()), "--uhat", "1,0,0", "--out", str(out), "--plot", str(png)])
+    assert result.exit_code == 0, result.output
+    assert "K13" in result.output and "correlations" in result.output
+    summary = json.loads(out.read_text())
+    truth = {"K1": 1.0, "K2": 1.5, "K3": 0.8, "K13": 0.5, "K23": 0.5}
+    for name, value in truth.items():  # 1% noise: within 5 standard errors
+        assert abs(summary["params"][name] - value) <= 5 * summary["stderr"][name]
+    assert png.stat().st_size > 10_000
+    bad = CliRunner().invoke(app, ["fit", str(example_data_path()), "--uhat", "1,0"])
+    assert bad.exit_code != 0
+
+
+@pytest.mark.slow
+def test_interval_calibration(rng):
+    """Over 240 synthetic data sets (single-start refits from the truth; the globalisation
+    is tested above), the 95% Gauss-Newton intervals cover the true stiffnesses 92-98% of
+    the time."""
+    kappa, tau = fit_grid(rng)
+    rod = hr.Rod(0.9, 1.6, 1.2, K13=0.2, K23=0.1, uhat=(0.5, -0.2, 0.3))
+    exact = hr.synthetic_helix_data(rod, kappa, tau, 0.0, jax.random.key(0))
+    n_sets = 240
+    sF, sM = 0.01 * float(exact.force_sigma[0]), 0.01 * float(exact.moment_sigma[0])
+    kf, km = jax.random.split(jax.random.key(7))
+    forces = np.asarray(exact.force + sF * jax.random.normal(kf, (n_sets, FIT_POINTS)))
+    moments = np.asarray(exact.moment + sM * jax.random.normal(km, (n_sets, FIT_POINTS)))
+    p, stderr = [], []
+    for F, M in zip(forces, moments):
+        fit = hr.fit_stiffness(hr.HelixData(F, M, kappa, tau, sF, sM), uhat=rod.uhat, n_starts=1, init=rod)
+        assert fit.ok, fit.message
+        p.append(parameter_vector(fit.rod)[:5])
+        stderr.append([float(fit.stderr[n]) for n in fit.names])
+    truth = parameter_vector(rod)[:5]
+    covered = np.abs(np.asarray(p) - truth) <= 1.959964 * np.asarray(stderr)
+    coverage = covered.mean()
+    assert 0.92 <= coverage <= 0.98, (coverage, covered.mean(axis=0))
+    assert np.all(covered.mean(axis=0) >= 0.88)
+
+
+def test_bad_options_give_documented_errors():
+    data = hr.HelixData(force=[1.0, 2.0], moment=[0.5, 0.1], kappa=[1.0, 0.5], tau=[0.2, -0.3])
+    with pytest.raises(ValueError, match="branch"):
+        hr.fit_stiffness(data, branch="closest")
+    with pytest.raises(ValueError, match="solver"):
+        hr.fit_stiffness(data, solver="newton")
+    with pytest.raises(ValueError, match="either uhat"):
+        hr.fit_stiffness(data, uhat=(0, 0, 0), fit_uhat=True)
+    with pytest.raises(ValueError, match="unknown parameter"):
+        hr.fit_stiffness(data, fix={"K4": 1.0})
+    with pytest.raises(ValueError, match="positive definite"):
+        hr.fit_stiffness(data, init={"K1": 1.0, "K2": 1.0, "K3": 0.01, "K13": 1.0})

@@ -1,0 +1,100 @@
+"""helixrod._misc: the gradient-safe square root, the plain Newton iteration, and the
+argument checks (raise for bad concrete values, pass traced values through), against
+numpy and closed forms."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from helixrod import _misc
+
+
+def test_safe_sqrt_values_and_zero_gradient_at_zero():
+    x = jnp.array([4.0, 2.25, 1e-300, 0.0, -0.0, -1.0])
+    np.testing.assert_array_equal(_misc.safe_sqrt(x), np.sqrt(np.maximum(np.asarray(x), 0.0)))
+    grad = jax.grad(_misc.safe_sqrt)
+    assert float(grad(0.0)) == 0.0  # finite (jnp.sqrt's derivative is inf there)
+    assert float(grad(-1.0)) == 0.0
+    assert float(grad(4.0)) == pytest.approx(0.25, rel=1e-15)
+    assert np.isfinite(jax.grad(lambda x: _misc.safe_sqrt(x * x))(0.0))
+    assert not np.isfinite(jax.grad(jnp.sqrt)(0.0))  # the reason for the helper
+
+
+def test_newton_iterations_finds_a_known_root_and_skips_non_finite_steps():
+    # x0^2 + x1^2 = 4, x0 = x1: the root (sqrt 2, sqrt 2) (quadratic convergence from (1, 0.5)).
+    def residual(x):
+        return jnp.stack([x[0] ** 2 + x[1] ** 2 - 4.0, x[0] - x[1]])
+
+    root = _misc.newton_iterations(residual, jnp.array([1.0, 0.5]), 8)
+    np.testing.assert_allclose(root, np.sqrt([2.0, 2.0]), rtol=1e-15)
+    # A singular Jacobian (x^2 - 2 at x = 0) gives a non-finite step: skipped, x stays put.
+    stuck = _misc.newton_iterations(lambda x: x * x - 2.0, jnp.zeros(1), 5)
+    np.testing.assert_array_equal(stuck, [0.0])
+    # project(new, old) follows every step: |x| keeps the iterate on the positive branch.
+    positive = _misc.newton_iterations(lambda x: x * x - 2.0, -jnp.ones(1), 10, project=lambda new, old: jnp.abs(new))
+    np.testing.assert_allclose(positive, [np.sqrt(2.0)], rtol=1e-15)
+    # Traceable: the same under jit.
+    np.testing.assert_allclose(jax.jit(lambda x0: _misc.newton_iterations(residual, x0, 8))(jnp.array([1.0, 0.5])), root, rtol=1e-15)
+
+
+def test_checks_raise_with_the_name_for_bad_concrete_values():
+    with pytest.raises(ValueError, match="owner: length must be finite and > 0, got 0.0"):
+        _misc.finite_scalar(0.0, "length", "owner", positive=True)
+    with pytest.raises(ValueError, match="owner: length must be finite, got nan"):
+        _misc.finite_scalar(np.nan, "length", "owner")
+    with pytest.raises(ValueError, match=r"owner: length must be a scalar, got shape \(2,\)"):
+        _misc.finite_scalar([1.0, 2.0], "length", "owner")
+    assert float(_misc.finite_scalar(2, "length", "owner", positive=True)) == 2.0
+    with pytest.raises(ValueError, match=r"owner: force must have trailing shape \(3,\), got \(2,\)"):
+        _misc.finite_array([1.0, 2.0], "force", "owner", (3,))
+    with pytest.raises(ValueError, match="owner: force must be finite"):
+        _misc.finite_array([[1.0, 2.0, np.inf]], "force", "owner", (3,))
+    assert _misc.finite_array(np.ones((4, 3)), "force", "owner", (3,)).shape == (4, 3)
+    for bad in (0, True, 1.5, "2"):
+        with pytest.raises(ValueError, match="owner: segments must be an integer >= 1"):
+            _misc.check_integer(bad, "segments", "owner")
+    assert _misc.check_integer(np.int64(3), "segments", "owner") == 3
+    assert _misc.check_integer(0, "continuation", "owner", minimum=0) == 0
+    with pytest.raises(ValueError, match="owner: method must be one of"):
+        _misc.check_choice("bisection", ("newton",), "method", "owner")
+    with pytest.raises(ValueError, match=r"owner: saveat must increase strictly within \[0, 2.0\]"):
+        _misc.increasing_within([0.0, 1.5, 1.0], 2.0, "saveat", "owner")
+    with pytest.raises(ValueError, match="owner: saveat must increase strictly within"):
+        _misc.increasing_within([0.0, 2.5], 2.0, "saveat", "owner")
+    with pytest.raises(ValueError, match="owner: saveat must increase strictly within"):
+        _misc.increasing_within([-0.1, 1.0], 2.0, "saveat", "owner")
+    with pytest.raises(ValueError, match="owner: saveat must be a 1-d array"):
+        _misc.increasing_within(np.ones((2, 2)), 2.0, "saveat", "owner")
+    np.testing.assert_array_equal(_misc.increasing_within([0.0, 2.0 * (1 + 1e-13)], 2.0, "saveat", "owner", slack=1e-12),
+                                  [0.0, 2.0 * (1 + 1e-13)])
+    with pytest.raises(ValueError, match=r"owner: sigma has non-finite values in rows \[1\]"):
+        _misc.column([1.0, np.nan], "sigma", "owner")
+    np.testing.assert_array_equal(_misc.column(0.5, "sigma", "owner", n=3), [0.5, 0.5, 0.5])
+
+
+def test_checks_pass_traced_values_through():
+    @jax.jit
+    def checked(x, v, s):
+        return (
+            _misc.finite_scalar(x, "length", "owner", positive=True),
+            _misc.finite_array(v, "force", "owner", (3,)),
+            _misc.increasing_within(s, x, "saveat", "owner"),
+        )
+
+    # Values that raise when concrete go through untouched (the entry points flag them).
+    x, v, s = checked(-1.0, jnp.array([jnp.inf, 0.0, 0.0]), jnp.array([3.0, 1.0]))
+    assert float(x) == -1.0 and np.isinf(v[0]) and np.asarray(s).tolist() == [3.0, 1.0]
+    # ... but shapes are static and still checked while tracing.
+    with pytest.raises(ValueError, match="trailing shape"):
+        checked(1.0, jnp.zeros(2), jnp.array([0.0, 1.0]))
+    assert _misc.is_concrete(1.0, jnp.ones(2)) and not jax.jit(lambda x: jnp.asarray(_misc.is_concrete(x)))(1.0)
+
+
+def test_no_gradient_stops_floating_point_leaves_only():
+    def f(x):
+        tree = _misc.no_gradient({"x": x, "count": 3})
+        assert tree["count"] == 3
+        return tree["x"] * x
+
+    assert float(jax.grad(f)(2.0)) == 2.0  # d/dx (c x) with c = x held fixed

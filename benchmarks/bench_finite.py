@@ -264,7 +264,7 @@ def bench_adjoints(repeats):
 def growth_rate(rod, length, h_ratio):
     """`wrench_growth_rate` at the bulk helix with the same extension and (unturned) rotation."""
     h0, theta0 = (float(a) for a in hr.unloaded_observables(rod, length))
-    bulk = _axial.bulk_helix(rod, length, ("extension", "rotation"), jnp.array([h_ratio * h0, theta0]))
+    bulk = hr.bulk_helix(rod, length, extension=h_ratio * h0, rotation=theta0)
     return float(hr.wrench_growth_rate(rod, bulk.mu2 * bulk.u, rod.moment(bulk.u)))
 
 

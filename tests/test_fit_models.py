@@ -84,15 +84,19 @@ def test_data_types_and_options_of_the_models():
     response = hr.EndResponseData(10.0, [0.01, 0.02], [0.0, 0.0], [1.0, 1.0], [1.0, 1.0], controls="force-moment",
                                   extension_sigma=0.1, rotation_sigma=0.1)
     for data in (shape, response):
-        with pytest.raises(ValueError, match="applies to HelixData only"):
+        with pytest.raises(ValueError, match=f"branch= does not apply to {type(data).__name__}"):
             hr.fit_stiffness(data, branch="stable")
-        with pytest.raises(ValueError, match="errors_in_variables= applies to HelixData only"):
+        with pytest.raises(ValueError, match=f"errors_in_variables= does not apply to {type(data).__name__}"):
             hr.fit_stiffness(data, errors_in_variables=True)
+        with pytest.raises(ValueError, match=f"fit_offsets= does not apply to {type(data).__name__}"):
+            hr.fit_stiffness(data, fit_offsets=True)
+    with pytest.raises(ValueError, match="fit_offsets= does not apply to HelixData"):
+        hr.fit_stiffness(hr.HelixData([1.0], [1.0], [1.0], [1.0]), fit_offsets=True)
         for solver in ("adam", "lbfgs", ADAM):
             with pytest.raises(ValueError, match="is not available for finite-rod data"):
                 hr.fit_stiffness(data, solver=solver)
     for bad in ({"force": [1.0]}, np.ones((3, 4)), None):
-        with pytest.raises(ValueError, match="data must be a HelixData, EndResponseData or ShapeData, got"):
+        with pytest.raises(ValueError, match="data must be a HelixData, EndResponseData, ShapeData or TweezerData, got"):
             hr.fit_stiffness(bad)
     helix = hr.HelixData(force=[1.0, 2.0], moment=[0.5, 0.1], kappa=[1.0, 0.5], tau=[0.2, -0.3])
     with pytest.raises(ValueError, match="use_register=True but the data have no register column"):

@@ -32,6 +32,11 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     )
     residual_above_tolerance = "The solver stopped, but the residual is above its tolerance."
     cost_not_finite = "The cost of the best start is not finite."
+    outside_model_range = (
+        "The point is outside the model's range of validity (a force too low for the "
+        "twist-fluctuation theory, whose correction is no longer small, or no buckling "
+        "transition because the plectoneme phase is stiffer than the extended one)."
+    )
 
 
 class SolverError(RuntimeError):

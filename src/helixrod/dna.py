@@ -18,7 +18,12 @@ kappa0, tau0, ell = dna.helix_from_bdna()           # 1/nm, 1/nm, nm per bp
 dna.persistence_length(410.0)                       # twist modulus 410 pN nm^2 -> ~100 nm
 data = dna.load_tweezer_example()
 S, C, g = dna.effective_moduli(data.rod, data.rod.uhat)
+hat = dna.tweezer_response(data.rod, 8000, 1.0, turns=jnp.linspace(-40, 40, 81))  # thermal
 ```
+
+`tweezer_response` adds the thermal fluctuations a tweezer sees to the rod's own response
+(worm-like chain, Moroz-Nelson twist softening, Marko's plectonemes; `helixrod._tweezer`),
+and `TweezerData` holds what instruments record, fitted with `helixrod.fit_stiffness`.
 """
 
 from ._datasets import TweezerExample as TweezerExample, load_tweezer_example as load_tweezer_example
@@ -42,4 +47,15 @@ from ._dna import (
     turns_to_radians as turns_to_radians,
     tweezer_from_helix as tweezer_from_helix,
 )
+from ._fit import TweezerData as TweezerData
 from ._spring import effective_moduli as effective_moduli
+from ._tweezer import (
+    PHASES as PHASES,
+    PLECTONEME_TWIST_PERSISTENCE as PLECTONEME_TWIST_PERSISTENCE,
+    TweezerResponse as TweezerResponse,
+    moroz_nelson_twist_modulus as moroz_nelson_twist_modulus,
+    tweezer_response as tweezer_response,
+    wlc_extension as wlc_extension,
+    wlc_force as wlc_force,
+    wlc_free_energy as wlc_free_energy,
+)

@@ -1,7 +1,7 @@
 """Finite rods: end conditions, boundary-value solves by (multiple) shooting, and the
 axial response curves of springs and tweezer filaments."""
 
-from ._bulk import BulkHelix as BulkHelix, bulk_helix as bulk_helix
+from ._bulk import BulkHelix as BulkHelix, bulk_helix as bulk_helix, bulk_helix_at as bulk_helix_at
 from ._ends import (
     AXIAL_CONTROLS as AXIAL_CONTROLS,
     AXIAL_OBSERVABLES as AXIAL_OBSERVABLES,

@@ -81,12 +81,18 @@ def _bulk_residual(z, args):
     return jnp.concatenate([balance, controls])
 
 
-def bulk_helix_at(rod, length, index, values, guess=None, *, max_steps: int = 64, light: bool = False) -> BulkHelix:
+def bulk_helix_at(
+    rod, length, index, values, guess=None, *, max_steps: int = 64, light: bool = False, newton_derivatives: bool = False
+) -> BulkHelix:
     """`bulk_helix` with the two controls given by (possibly traced) indices `index` into
     `AXIAL_OBSERVABLES` and a length-4 array of `values` (entries not indexed are ignored).
 
     `light=True`: a plain `max_steps`-step Newton iteration without derivatives (small to
-    compile; for initial guesses)."""
+    compile; for initial guesses).  `newton_derivatives=True`: that iteration, then two
+    Newton steps with derivatives from its (frozen) root, which give the exact first and
+    second derivatives of the root (the Newton map is stationary at a root) with dense
+    solves that never raise: for callers that differentiate twice or under solvers that
+    probe with non-finite tangents.  Default: optimistix Newton with implicit derivatives."""
     dtype = float_dtype()
     length = jnp.asarray(length, dtype)
     k_scale = stiffness_scale(rod)
@@ -96,10 +102,15 @@ def bulk_helix_at(rod, length, index, values, guess=None, *, max_steps: int = 64
     u0, m10, m20 = (jax.lax.stop_gradient(jnp.asarray(g, dtype)) for g in guess)
     z0 = jnp.concatenate([u0 * ell, jnp.stack([m10 / k_scale, m20 * ell / k_scale])])
     args = (rod, jnp.asarray(index), jnp.asarray(values, dtype), length, jnp.stack([k_scale, ell]))
-    if light:
-        args = no_gradient(args)
-        z = newton_iterations(lambda z: _bulk_residual(z, args), z0, max_steps)
+    if light or newton_derivatives:
+        frozen = no_gradient(args)
+        z = newton_iterations(lambda z: _bulk_residual(z, frozen), z0, max_steps)
         result = RESULTS.successful
+        if newton_derivatives:
+            z = jax.lax.stop_gradient(z)
+            for _ in range(2):
+                step = jnp.linalg.solve(jax.jacfwd(_bulk_residual)(z, args), _bulk_residual(z, args))
+                z = z - step
     else:
         sol = optx.root_find(
             _bulk_residual, optx.Newton(rtol=1e-12, atol=1e-12), z0, args, max_steps=max_steps, throw=False

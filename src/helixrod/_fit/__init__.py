@@ -20,3 +20,5 @@ from ._models import (
 )
 from ._pipeline import SOLVERS as SOLVERS, StiffnessFit as StiffnessFit, fit_stiffness as fit_stiffness
 from ._report import ErrorAnalysis as ErrorAnalysis, Identifiability as Identifiability, error_analysis as error_analysis
+from ._tweezer_data import TweezerData as TweezerData
+from ._tweezer_model import TweezerModel as TweezerModel

@@ -50,7 +50,8 @@ def _refits(z0, models, param, solver, max_steps: int):
         z, result, _ = minimise(z0, model, param, solver, max_steps)
         finite = jnp.isfinite(cost_at(z, model, param))
         result = RESULTS.where(finite | (result != RESULTS.successful), result, RESULTS.cost_not_finite)
-        return param.full(param.physical(z)), result
+        q = param.physical(z)
+        return param.full(q), q, result
 
     return jax.vmap(one)(models)
 
@@ -74,12 +75,17 @@ def bootstrap(data, fit: StiffnessFit, n: int, key: Array, *, kind: str = "cases
     param = problem.parameterisation
     models = model.replicates(kind, int(n), key, fit.predicted)
     p_fit = np.asarray(rod_vector(fit.rod))
-    z0 = jnp.asarray(param.internal(p_fit))
-    p, results = _refits(z0, models, param, problem.solver, problem.max_steps)
-    p = np.asarray(p)
+    extra_fit = np.asarray(param.extra_vector(jnp.asarray([float(fit.params[n]) for n in param.names])))
+    z0 = jnp.asarray(param.internal(p_fit, extra_fit))
+    p, q, results = _refits(z0, models, param, problem.solver, problem.max_steps)
+    p, q = np.array(p), np.array(q)
     ok = np.asarray(results == RESULTS.successful)
     p = np.stack([closest_in_orbit(pi, p_fit, param, model.frame_observed) for pi in p])
     p[~ok] = np.nan
-    samples = {name: jnp.asarray(p[:, PARAMETER_NAMES.index(name)]) for name in fit.names}
+    q[~ok] = np.nan
+    own = {name: q[:, len(param.free) + i] for i, name in enumerate(param.extra_free)}
+    samples = {
+        name: jnp.asarray(own[name] if name in own else p[:, PARAMETER_NAMES.index(name)]) for name in fit.names
+    }
     boot = Bootstrap(names=fit.names, samples=samples, result=results, kind=kind)
     return raise_if_failed(boot, boot.result, "bootstrap: replicates did not converge") if throw else boot

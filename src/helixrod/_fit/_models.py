@@ -43,6 +43,7 @@ from .._bvp import axial_response, solve_boundary_value
 from .._equilibria import helix_equilibria
 from ._finite_data import EndResponseData, ShapeData
 from ._helix_data import HelixData
+from ._parameters import ModelParameter
 
 BRANCHES = ("nearest", "stable", "min-energy")
 
@@ -56,9 +57,15 @@ class AbstractForwardModel(eqx.Module):
     default_starts: ClassVar[int]
 
     @abc.abstractmethod
-    def residuals(self, rod) -> tuple[Array, dict[str, Array]]:
-        """The normalised residuals `(m,)` of `rod`, and its predictions of the observed
-        quantities by name (traced; `jit`, `vmap` and `jacfwd` safe)."""
+    def residuals(self, rod, extra: Array) -> tuple[Array, dict[str, Array]]:
+        """The normalised residuals `(m,)` of `rod` with the model's own parameters `extra`
+        (in the order of `parameters`), and the predictions of the observed quantities by
+        name (traced; `jit`, `vmap` and `jacfwd` safe)."""
+
+    @property
+    def parameters(self) -> tuple[ModelParameter, ...]:
+        """The model's own parameters besides the rod's (none by default)."""
+        return ()
 
     @property
     @abc.abstractmethod
@@ -97,7 +104,7 @@ def forward_model(data, **options) -> AbstractForwardModel:
 def _only_defaults(data, options):
     given = [name for name, value in options.items() if value is not None]
     if given:
-        raise ValueError(f"fit_stiffness: {given[0]}= applies to HelixData only")
+        raise ValueError(f"fit_stiffness: {given[0]}= does not apply to {type(data).__name__}")
 
 
 # -- helices ----------------------------------------------------------------------------------
@@ -127,7 +134,7 @@ class HelixModel(AbstractForwardModel):
     def frame_observed(self) -> bool:
         return self.use_register
 
-    def residuals(self, rod):
+    def residuals(self, rod, extra):
         eq = helix_equilibria(rod, self.kappa, self.tau)
         sF, sM = self.force_sigma[:, None], self.moment_sigma[:, None]
         errF = eq.force - self.force[:, None]
@@ -239,7 +246,9 @@ class HelixModel(AbstractForwardModel):
 
 
 @forward_model.register
-def _(data: HelixData, *, branch=None, use_register=None, errors_in_variables=None) -> HelixModel:
+def _(data: HelixData, *, branch=None, use_register=None, errors_in_variables=None, **others) -> HelixModel:
+    if others:
+        raise ValueError(f"fit_stiffness: {next(iter(others))}= does not apply to HelixData")
     branch = "nearest" if branch is None else branch
     if branch not in BRANCHES:
         raise ValueError(f"branch must be one of {BRANCHES}, got {branch!r}")
@@ -288,7 +297,7 @@ class EndResponseModel(AbstractForwardModel):
     def frame_observed(self) -> bool:
         return True
 
-    def residuals(self, rod):
+    def residuals(self, rod, extra):
         test = AXIAL_CONTROLS[self.controls]
         given = {AXIAL_OBSERVABLES[i]: self.values[:, i] for i in test.controls}
         curve = axial_response(
@@ -360,7 +369,7 @@ class ShapeModel(AbstractForwardModel):
     def frame_observed(self) -> bool:
         return True
 
-    def residuals(self, rod):
+    def residuals(self, rod, extra):
         options = BoundaryValueOptions(segments=self.segments)
 
         def one(end):

@@ -26,24 +26,66 @@ STIFFNESS_NAMES = PARAMETER_NAMES[:5]
 TWIST_NAMES = PARAMETER_NAMES[5:]
 
 
+class ModelParameter(eqx.Module):
+    """A parameter of a forward model besides the rod's (e.g. a persistence length): its
+    `name`, default `start` value, `scale`, whether it is `positive` (then fitted in log
+    coordinates) and whether it is fixed at `start` unless `fix=` or `init=` says otherwise
+    (`fixed_by_default`)."""
+
+    name: str = eqx.field(static=True)
+    start: float = eqx.field(static=True)
+    scale: float = eqx.field(static=True)
+    positive: bool = eqx.field(static=True)
+    fixed_by_default: bool = eqx.field(static=True, default=False)
+
+
 class Parameterisation(eqx.Module):
-    """The free parameters of a fit (`free`, in `PARAMETER_NAMES` order), the values of the
-    fixed ones, and the scales of the internal coordinates.  The names are static (one
-    compilation per choice), the values traced (refits of other values reuse it)."""
+    """The free parameters of a fit -- the rod's (`free`, in `PARAMETER_NAMES` order), then
+    the forward model's own (`extra_free`, in the model's order; `names` is both) -- the
+    values of the fixed ones, and the scales of the internal coordinates.  The names are
+    static (one compilation per choice), the values traced (refits of other values reuse
+    it).  Internal coordinates and physical values `q` list the rod's free parameters first."""
 
     free: tuple[str, ...] = eqx.field(static=True)
     fixed_names: tuple[str, ...] = eqx.field(static=True)
     fixed_values: Array
     k_scale: Array
     u_scale: Array
+    extra: tuple[ModelParameter, ...] = eqx.field(static=True)
+    extra_free: tuple[str, ...] = eqx.field(static=True)
+    extra_values: Array  # every model parameter: the fixed values, or the start of free ones
 
-    def __init__(self, fixed: Mapping[str, float], k_scale: float, u_scale: float):
+    def __init__(
+        self,
+        fixed: Mapping[str, float],
+        k_scale: float,
+        u_scale: float,
+        extra: tuple[ModelParameter, ...] = (),
+        extra_values: Mapping[str, float] | None = None,
+    ):
         dtype = float_dtype()
         self.free = tuple(n for n in PARAMETER_NAMES if n not in fixed)
         self.fixed_names = tuple(n for n in PARAMETER_NAMES if n in fixed)
         self.fixed_values = jnp.asarray([float(fixed.get(n, 0.0)) for n in PARAMETER_NAMES], dtype)
         self.k_scale = jnp.asarray(k_scale, dtype)
         self.u_scale = jnp.asarray(u_scale, dtype)
+        self.extra = tuple(extra)
+        self.extra_free = tuple(e.name for e in self.extra if e.name not in fixed)
+        values = {} if extra_values is None else dict(extra_values)
+        values.update({k: v for k, v in fixed.items() if k in {e.name for e in self.extra}})
+        self.extra_values = jnp.asarray([float(values.get(e.name, e.start)) for e in self.extra], dtype)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Every free parameter: the rod's, then the model's."""
+        return self.free + self.extra_free
+
+    def extra_vector(self, q) -> Array:
+        """Every model parameter (in the model's order) from the free physical values `q`."""
+        lookup = dict(zip(self.extra_free, [q[len(self.free) + i] for i in range(len(self.extra_free))]))
+        return jnp.stack(
+            [jnp.asarray(lookup.get(e.name, self.extra_values[i]), float_dtype()) for i, e in enumerate(self.extra)]
+        ) if self.extra else jnp.zeros((0,), float_dtype())
 
     @property
     def fixed(self) -> dict[str, float]:
@@ -52,9 +94,11 @@ class Parameterisation(eqx.Module):
         return {n: float(values[PARAMETER_NAMES.index(n)]) for n in self.fixed_names}
 
     def scales(self, names) -> np.ndarray:
-        """The scale of each parameter in `names` (`k_scale` or `u_scale`)."""
+        """The scale of each parameter in `names` (`k_scale`, `u_scale` or a model
+        parameter's own)."""
         k, u = float(self.k_scale), float(self.u_scale)
-        return np.array([k if n in STIFFNESS_NAMES else u for n in names])
+        own = {e.name: e.scale for e in self.extra}
+        return np.array([own[n] if n in own else k if n in STIFFNESS_NAMES else u for n in names])
 
     def _fixed_lookup(self):
         return {n: self.fixed_values[PARAMETER_NAMES.index(n)] for n in self.fixed_names}
@@ -101,14 +145,25 @@ class Parameterisation(eqx.Module):
             val["K3"] = K3
         for n in TWIST_NAMES:
             val[n] = us * zs[n] if n in zs else fixed[n]
-        return jnp.stack([jnp.asarray(val[n], float_dtype()) for n in self.free])
+        rod_part = [jnp.asarray(val[n], float_dtype()) for n in self.free]
+        return jnp.stack(rod_part + self._extra_physical(z))
+
+    def _extra_physical(self, z):
+        own = {e.name: e for e in self.extra}
+        out = []
+        for i, name in enumerate(self.extra_free):
+            e, w = own[name], z[len(self.free) + i]
+            out.append(jnp.asarray(e.scale * jnp.exp(jnp.clip(w, -40.0, 40.0)) if e.positive else e.scale * w, float_dtype()))
+        return out
 
     def rod_at(self, z) -> Rod:
         """The rod at internal coordinates `z`."""
         return self.rod(self.physical(z))
 
-    def internal(self, p_full) -> np.ndarray:
-        """Inverse of `physical` from a full physical vector (NumPy; for initial values)."""
+    def internal(self, p_full, extra_full=None) -> np.ndarray:
+        """Inverse of `physical` from a full physical vector of the rod and, if the model has
+        parameters, every model parameter (NumPy; for initial values; default: their starts)."""
+        extra_full = np.asarray(self.extra_values if extra_full is None else extra_full, float)
         p = dict(zip(PARAMETER_NAMES, np.asarray(p_full, float)))
         ks, us = float(self.k_scale), float(self.u_scale)
         z = {}
@@ -133,13 +188,16 @@ class Parameterisation(eqx.Module):
                 z[n] = w[i]
         for n in TWIST_NAMES:
             z[n] = p[n] / us
-        return np.array([z[n] for n in self.free])
+        for e, value in zip(self.extra, extra_full):
+            if e.name in self.extra_free:
+                z[e.name] = np.log(value / e.scale) if e.positive else value / e.scale
+        return np.array([z[n] for n in self.names])
 
     def starts(self, z_base, n: int, key) -> np.ndarray:
         """`n` starts: `z_base`, then random perturbations suited to each coordinate
         (log-normal stiffnesses, normal couplings and twists)."""
-        spread = np.array([{"K1": 0.7, "K2": 0.7, "K3": 0.5}.get(name, 0.5) for name in self.free])
-        noise = np.array(jax.random.normal(key, (n, len(self.free))))
+        spread = np.array([{"K1": 0.7, "K2": 0.7, "K3": 0.5}.get(name, 0.5) for name in self.free] + [0.2] * len(self.extra_free))
+        noise = np.array(jax.random.normal(key, (n, len(self.names))))
         noise[0] = 0.0
         return z_base[None, :] + spread * noise
 
@@ -148,14 +206,24 @@ def _disc(w):
     return w / jnp.sqrt(1.0 + jnp.sum(w * w))
 
 
-def resolve_fixed(uhat, fit_uhat: bool, fix) -> dict[str, float]:
-    """The fixed parameters by name from `uhat=`, `fit_uhat=` and `fix=` (checked)."""
+def resolve_fixed(uhat, fit_uhat: bool, fix, extra: tuple[ModelParameter, ...] = (), init=None) -> dict[str, float]:
+    """The fixed parameters by name from `uhat=`, `fit_uhat=` and `fix=` (checked), and the
+    model parameters fixed by default (unless `fix` or an `init` mapping names them)."""
     fixed = {}
+    own = {e.name: e for e in extra}
+    names = PARAMETER_NAMES + tuple(own)
     if fix:
         for name, value in dict(fix).items():
-            if name not in PARAMETER_NAMES:
-                raise ValueError(f"fix: unknown parameter {name!r}; names are {PARAMETER_NAMES}")
-            fixed[name] = float(value)
+            if name not in names:
+                raise ValueError(f"fix: unknown parameter {name!r}; names are {names}")
+            value = float(value)
+            if not np.isfinite(value) or (name in own and own[name].positive and value <= 0):
+                raise ValueError(f"fix: {name} must be finite{' and > 0' if name in own and own[name].positive else ''}, got {value}")
+            fixed[name] = value
+    named_in_init = set(init) if isinstance(init, Mapping) else set()
+    for e in extra:
+        if e.fixed_by_default and e.name not in fixed and e.name not in named_in_init:
+            fixed[e.name] = e.start
     if fit_uhat and uhat is not None:
         raise ValueError("give either uhat= (fixed intrinsic twist) or fit_uhat=True, not both")
     if not fit_uhat:
@@ -171,25 +239,41 @@ def resolve_fixed(uhat, fit_uhat: bool, fix) -> dict[str, float]:
         schur = fixed["K3"] - fixed.get("K13", 0.0) ** 2 / fixed["K1"] - fixed.get("K23", 0.0) ** 2 / fixed["K2"]
         if "K13" in fixed and "K23" in fixed and schur <= 0:
             raise ValueError("fix: the fixed stiffnesses are not positive definite")
-    if all(n in fixed for n in PARAMETER_NAMES):
+    if all(n in fixed for n in names):
         raise ValueError("nothing to fit: every parameter is fixed")
     return fixed
 
 
-def start_vector(init, fixed: dict[str, float], default) -> np.ndarray:
-    """Full physical vector from `init` (a Rod, a mapping or None) over `default`, with the
-    fixed values imposed; `ValueError` unless it is a valid rod."""
+def extra_start(init, fixed: dict[str, float], extra: tuple[ModelParameter, ...]) -> dict[str, float]:
+    """Start values of the model parameters: `init` entries (a mapping) over their defaults,
+    fixed values imposed; `ValueError` for a positive one that is not."""
+    values = {e.name: e.start for e in extra}
+    if isinstance(init, Mapping):
+        values.update({n: float(v) for n, v in init.items() if n in values})
+    values.update({n: v for n, v in fixed.items() if n in values})
+    for e in extra:
+        if not np.isfinite(values[e.name]) or (e.positive and values[e.name] <= 0):
+            raise ValueError(f"init: {e.name} must be finite{' and > 0' if e.positive else ''}, got {values[e.name]}")
+    return values
+
+
+def start_vector(init, fixed: dict[str, float], default, model_names=()) -> np.ndarray:
+    """Full physical vector of the rod from `init` (a Rod, a mapping or None; entries named
+    in `model_names` are the model's, see `extra_start`) over `default`, with the fixed
+    values imposed; `ValueError` unless it is a valid rod."""
     p = dict(zip(PARAMETER_NAMES, default))
     if isinstance(init, Rod):
         p.update(zip(PARAMETER_NAMES, np.asarray(rod_vector(init), float)))
     elif isinstance(init, Mapping):
         for n, v in init.items():
+            if n in model_names:
+                continue
             if n not in PARAMETER_NAMES:
                 raise ValueError(f"init: unknown parameter {n!r}")
             p[n] = float(v)
     elif init is not None:
         raise ValueError("init must be a Rod, a mapping of parameter values, or None")
-    p.update(fixed)
+    p.update({n: v for n, v in fixed.items() if n in p})
     v = np.array([p[n] for n in PARAMETER_NAMES])
     rod_from_vector(v, checked=True)  # raises ValueError if not positive definite
     return v

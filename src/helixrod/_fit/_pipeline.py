@@ -22,7 +22,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
 from .._status import RESULTS, message, promote, raise_if_failed
 from ._models import AbstractForwardModel, forward_model
-from ._parameters import Parameterisation, resolve_fixed, start_vector
+from ._parameters import Parameterisation, extra_start, resolve_fixed, start_vector
 from ._report import ErrorAnalysis, Identifiability, error_analysis
 from ._symmetry import canonical, closest_in_orbit, symmetries
 
@@ -167,12 +167,17 @@ def assemble(
     )
 
 
+def evaluate(q, model: AbstractForwardModel, param: Parameterisation):
+    """The model's residuals and predictions at the free physical values `q`."""
+    return model.residuals(param.rod(q), param.extra_vector(q))
+
+
 def minimise(z0, model: AbstractForwardModel, param: Parameterisation, solver, max_steps: int):
     """One local solve from internal coordinates `z0`: (z, result, steps).  Pure, vmappable."""
 
     def fn(z, args):
         model, param = args
-        return model.residuals(param.rod_at(z))[0]
+        return evaluate(param.physical(z), model, param)[0]
 
     args = (model, param)
     if isinstance(solver, optx.AbstractLeastSquaresSolver):
@@ -185,7 +190,7 @@ def minimise(z0, model: AbstractForwardModel, param: Parameterisation, solver, m
 
 def cost_at(z, model: AbstractForwardModel, param: Parameterisation):
     """$\\tfrac12\\sum r^2$ at internal coordinates `z` (`inf` where not finite)."""
-    r = model.residuals(param.rod_at(z))[0]
+    r = evaluate(param.physical(z), model, param)[0]
     cost = 0.5 * jnp.sum(r * r)
     return jnp.where(jnp.isfinite(cost), cost, jnp.inf)
 
@@ -212,8 +217,10 @@ def _multistart(z0s, model, param, solver, max_steps: int, batching: str):
 
 
 @eqx.filter_jit
-def _full_vectors(z, param: Parameterisation):
-    return jax.vmap(lambda zz: param.full(param.physical(zz)))(z)
+def _physical_values(z, param: Parameterisation):
+    """The rod's full vectors and the free physical values of internal coordinates `z`."""
+    q = jax.vmap(param.physical)(z)
+    return jax.vmap(param.full)(q), q
 
 
 @eqx.filter_jit
@@ -222,7 +229,7 @@ def _jacobian_and_predictions(q, model: AbstractForwardModel, param: Parameteris
     the residuals and the predictions, in one compiled program."""
 
     def residuals(qq):
-        r, predicted = model.residuals(param.rod(qq))
+        r, predicted = evaluate(qq, model, param)
         return r, (r, predicted)
 
     return jax.jacfwd(residuals, has_aux=True)(q)
@@ -264,6 +271,7 @@ def fit_stiffness(
     branch: str | None = None,
     use_register: bool | None = None,
     errors_in_variables: bool | None = None,
+    fit_offsets: bool | None = None,
     throw: bool = False,
 ) -> StiffnessFit:
     """Fit the stiffness $K$ (and optionally $\\hat u$) of a rod to data.
@@ -325,7 +333,8 @@ def fit_stiffness(
     fit.params["K1"], fit.stderr["K1"], fit.identifiability.weak
     ```
     """
-    model = forward_model(data, branch=branch, use_register=use_register, errors_in_variables=errors_in_variables)
+    options = dict(branch=branch, use_register=use_register, errors_in_variables=errors_in_variables, fit_offsets=fit_offsets)
+    model = forward_model(data, **{name: value for name, value in options.items() if value is not None})
     method, solver = _solver(solver, rtol, atol, learning_rate)
     if model.forward_mode_only and not isinstance(solver, optx.AbstractLeastSquaresSolver):
         raise ValueError(
@@ -337,11 +346,13 @@ def fit_stiffness(
         raise ValueError(f"n_starts must be >= 1, got {n_starts}")
     if batching not in BATCHING:
         raise ValueError(f"batching must be 'map' or 'vmap', got {batching!r}")
-    fixed = resolve_fixed(uhat, fit_uhat, fix)
+    extra = model.parameters
+    fixed = resolve_fixed(uhat, fit_uhat, fix, extra, init)
     u_fixed = [fixed.get(f"uhat{i}", 0.0) for i in (1, 2, 3)]
     B, C = model.isotropic_start(u_fixed)
-    p0 = start_vector(init, fixed, np.array([B, B, C, 0.0, 0.0, *u_fixed]))
-    param = Parameterisation(fixed, float(np.sqrt(p0[0] * p0[1])), model.twist_scale(p0))
+    p0 = start_vector(init, fixed, np.array([B, B, C, 0.0, 0.0, *u_fixed]), [e.name for e in extra])
+    extra0 = extra_start(init, fixed, extra)
+    param = Parameterisation(fixed, float(np.sqrt(p0[0] * p0[1])), model.twist_scale(p0), extra, extra0)
     key = jax.random.key(0) if key is None else key
     z0s = param.starts(param.internal(p0), int(n_starts), key)
     z, cost, results, steps = _multistart(jnp.asarray(z0s), model, param, solver, int(max_steps), batching)
@@ -349,7 +360,7 @@ def fit_stiffness(
 
     best = int(np.argmin(np.where(np.isfinite(cost), cost, np.inf)))
     frame_observed = model.frame_observed
-    p_all = np.asarray(_full_vectors(jnp.asarray(z), param))
+    p_all, q_all = (np.asarray(a) for a in _physical_values(jnp.asarray(z), param))
     p_best = canonical(p_all[best], param, frame_observed)
     # Starts that reached the best minimum up to the symmetries.
     scale = param.scales(PARAMETER_NAMES)
@@ -360,17 +371,17 @@ def fit_stiffness(
         and abs(cost[i] - cost[best]) <= 1e-6 * (1 + cost[best])
         and np.max(np.abs(closest_in_orbit(p_all[i], p_best, param, frame_observed) - p_best) / scale) <= 1e-4
     )
-    q = np.array([p_best[PARAMETER_NAMES.index(n)] for n in param.free])
+    q = np.concatenate([[p_best[PARAMETER_NAMES.index(n)] for n in param.free], q_all[best, len(param.free):]])
     J, (r, predicted) = _jacobian_and_predictions(jnp.asarray(q), model, param)
     analysis = error_analysis(
-        J, r, dict(zip(param.free, q)), param.scales(param.free), absolute_sigma=absolute_sigma,
+        J, r, dict(zip(param.names, q)), param.scales(param.names), absolute_sigma=absolute_sigma,
         weak_threshold=weak_threshold, symmetries=[text for text, _ in symmetries(param, frame_observed)],
     )
     result = jax.tree.map(lambda v: v[best], results)
     if not np.isfinite(analysis.cost):
         result = RESULTS.cost_not_finite
     fit = assemble(
-        rod_from_vector(p_best, checked=True), analysis, dict(zip(param.free, q)), r, predicted, result=result,
+        rod_from_vector(p_best, checked=True), analysis, dict(zip(param.names, q)), r, predicted, result=result,
         method=method, absolute_sigma=absolute_sigma, n_steps=int(steps[best]), start_costs=cost, n_agree=agree,
         problem=FitProblem(model, param, solver, int(max_steps)),
     )

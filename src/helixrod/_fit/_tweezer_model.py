@@ -1,0 +1,200 @@
+"""The forward model of tweezer data (`TweezerData`): extension (and measured torque) of
+DNA molecules at their force and turns or torque, through the rod and its thermal
+fluctuations (`helixrod._tweezer`).
+
+Residuals: the measured extensions minus the predictions over their sigmas, then the
+measured torques (where recorded) likewise.  Besides the rod, the model has its own
+parameters: `persistence_length` (nm, free), `plectoneme_twist_persistence` (nm; free when
+some point is turned, else fixed at its default) and one bead-height `offset_<molecule>`
+(nm) per molecule added to its extensions (fixed at 0 unless the model option
+`fit_offsets=True`).  With sigmas of the controls (force, turns) in the data, errors in
+variables are on by default: the effective variance $\\sigma_h^2 + (\\partial h/\\partial F\\,
+\\sigma_F)^2 + (\\partial h/\\partial n\\,\\sigma_n)^2$ of each extension (Orear, Am. J. Phys.
+50, 912 (1982)), its weights held fixed in the Jacobian as in the helix model.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from .._dna import helix_from_bdna, kT as thermal_energy
+from .._status import RESULTS
+from .._tweezer import PLECTONEME_TWIST_PERSISTENCE, response_point
+from ._models import AbstractForwardModel, forward_model
+from ._parameters import ModelParameter
+from ._tweezer_data import TweezerData
+
+#: Typical zero-load moduli of DNA used only for the default start (S pN, C pN nm^2):
+#: Bryant et al., Nature 424, 338 (2003).
+_START_MODULI = (1100.0, 410.0)
+
+
+class TweezerModel(AbstractForwardModel):
+    """Extensions (and measured torques) of molecules in magnetic or optical tweezers."""
+
+    force: Array
+    control: Array  # turns, or a torque where torque_controlled
+    torque_controlled: Array
+    extension: Array
+    extension_sigma: Array
+    force_sigma: Array | None
+    turns_sigma: Array | None
+    torque_points: Array  # indices of the points with a measured torque
+    measured_torque: Array
+    measured_torque_sigma: Array
+    molecule: Array
+    n_bp: Array
+    kT: Array
+    length_per_bp: Array
+    molecule_names: tuple[str, ...] = eqx.field(static=True)
+    fit_offsets: bool = eqx.field(static=True)
+    plectonemes_free: bool = eqx.field(static=True)
+    errors_in_variables: bool = eqx.field(static=True)
+    forward_mode_only: ClassVar[bool] = True
+    default_starts: ClassVar[int] = 1
+
+    @property
+    def frame_observed(self) -> bool:
+        return False
+
+    @property
+    def parameters(self) -> tuple[ModelParameter, ...]:
+        own = (
+            ModelParameter("persistence_length", 50.0, 50.0, True),
+            ModelParameter("plectoneme_twist_persistence", PLECTONEME_TWIST_PERSISTENCE, PLECTONEME_TWIST_PERSISTENCE, True, not self.plectonemes_free),
+        )
+        offsets = tuple(ModelParameter(f"offset_{name}", 0.0, 10.0, False, not self.fit_offsets) for name in self.molecule_names)
+        return own + offsets
+
+    def _predict(self, rod, extra, force, control):
+        A, P, offsets = extra[0], extra[1], extra[2:]
+        uhat = jnp.asarray(rod.uhat)
+        rise = self.length_per_bp * uhat[2] / jnp.linalg.norm(uhat)
+        N = self.n_bp[self.molecule]
+        per_bp = jnp.where(self.torque_controlled, control, 2 * jnp.pi * control / N)
+
+        def one(F, x, by_torque):
+            ext, rot, torque, phase, _, _, _, result = response_point(
+                rod, self.length_per_bp, rise, F, x, by_torque, A, P, self.kT
+            )
+            return ext, torque, phase, result
+
+        ext, torque, phase, result = jax.vmap(one)(force, per_bp, self.torque_controlled)
+        return N * ext + offsets[self.molecule], torque, phase, result
+
+    def residuals(self, rod, extra):
+        extension, torque, phase, result = self._predict(rod, extra, self.force, self.control)
+        sigma = self.extension_sigma
+        if self.errors_in_variables:
+            sigma = self._effective_sigma(rod, extra)
+        r_extension = (extension - self.extension) / sigma
+        r_torque = (torque[self.torque_points] - self.measured_torque) / self.measured_torque_sigma
+        predicted = {"extension": extension, "torque": torque, "phase": phase, "ok": result == RESULTS.successful}
+        return jnp.concatenate([r_extension, r_torque]), predicted
+
+    def _effective_sigma(self, rod, extra):
+        frozen = jax.lax.stop_gradient((rod, extra))
+
+        def extension_of(force, control):
+            return self._predict(*frozen, force, control)[0]
+
+        variance = self.extension_sigma**2
+        zeros = jnp.zeros_like(self.force)
+        if self.force_sigma is not None:
+            slope = jax.jvp(extension_of, (self.force, self.control), (jnp.ones_like(self.force), zeros))[1]
+            variance = variance + (slope * self.force_sigma) ** 2
+        if self.turns_sigma is not None:
+            turned = jnp.where(self.torque_controlled, 0.0, 1.0)
+            slope = jax.jvp(extension_of, (self.force, self.control), (zeros, turned))[1]
+            variance = variance + (slope * jnp.where(self.torque_controlled, 0.0, self.turns_sigma)) ** 2
+        return jax.lax.stop_gradient(jnp.sqrt(variance))
+
+    def isotropic_start(self, uhat):
+        """The isotropic rod $\\mathrm{diag}(B, B, C_w)$ with intrinsic helix `uhat` whose
+        stretch and twist moduli at zero load are typical of DNA (S = 1100 pN, C = 410 pN
+        nm^2): the classical open-coiled spring formulas of `effective_moduli` solved for
+        $(B, C_w)$; (1000, 1000) where they give no positive solution."""
+        u = np.asarray(uhat, float)
+        norm = float(np.linalg.norm(u))
+        kappa, tau = float(np.hypot(u[0], u[1])), float(u[2])
+        if norm == 0 or kappa == 0 or tau <= 0:
+            return 1000.0, 1000.0
+        sin, cos, radius = tau / norm, kappa / norm, kappa / norm**2
+        S, C = _START_MODULI
+        matrix = sin * np.array([[sin**2, cos**2], [cos**2, sin**2]])  # (B, Cw) -> (S r^2, C)
+        B, Cw = np.linalg.solve(matrix, np.array([S * radius**2, C]))
+        return (float(B), float(Cw)) if B > 0 and Cw > 0 else (1000.0, 1000.0)
+
+    def twist_scale(self, p0):
+        norm = float(np.linalg.norm(np.asarray(p0)[5:]))
+        return norm if norm > 0 else 1.0 / float(self.length_per_bp)
+
+    def with_data(self, data):
+        if not isinstance(data, TweezerData):
+            raise ValueError(f"a fit to TweezerData needs TweezerData, got {type(data).__name__}")
+        return forward_model(data, fit_offsets=self.fit_offsets, errors_in_variables=self.errors_in_variables)
+
+    def replicates(self, kind, n, key, predicted):
+        size = self.force.shape[0]
+        per_point = ("force", "control", "torque_controlled", "extension", "extension_sigma", "force_sigma", "turns_sigma", "molecule")
+        if kind == "cases":
+            if self.torque_points.shape[0]:
+                raise ValueError("bootstrap kind='cases' of tweezer data with measured torques is not supported; use 'parametric'")
+            idx = jax.random.randint(key, (n, size), 0, size)
+            batch = jax.tree.map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), self)
+            return eqx.tree_at(
+                lambda m: [getattr(m, f) for f in per_point if getattr(self, f) is not None],
+                batch,
+                [getattr(self, f)[idx] for f in per_point if getattr(self, f) is not None],
+            )
+        batch = jax.tree.map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), self)
+        ke, kt = jax.random.split(key)
+        extension = predicted["extension"][None] + self.extension_sigma[None] * jax.random.normal(ke, (n, size))
+        torque = predicted["torque"][self.torque_points][None] + self.measured_torque_sigma[None] * jax.random.normal(
+            kt, (n, self.torque_points.shape[0])
+        )
+        return eqx.tree_at(lambda m: (m.extension, m.measured_torque), batch, (extension, torque))
+
+
+@forward_model.register
+def _(data: TweezerData, *, fit_offsets=None, errors_in_variables=None, branch=None, use_register=None) -> TweezerModel:
+    if branch is not None or use_register is not None:
+        raise ValueError("fit_stiffness: branch= and use_register= apply to HelixData only")
+    has_control_sigma = data.force_sigma is not None or data.turns_sigma is not None
+    if errors_in_variables is None:
+        errors_in_variables = has_control_sigma
+    elif errors_in_variables and not has_control_sigma:
+        raise ValueError("errors_in_variables=True needs force_sigma and/or turns_sigma in the data")
+    torque_points = np.flatnonzero(np.asarray(data.has_measured_torque))
+    torque_controlled = np.asarray(data.torque_controlled)
+    control = np.where(torque_controlled, np.asarray(data.torque), np.asarray(data.turns))
+    turned = ~torque_controlled & (np.abs(control) > 0)
+    measured = np.zeros(0) if data.measured_torque is None else np.asarray(data.measured_torque)[torque_points]
+    measured_sigma = np.zeros(0) if data.measured_torque_sigma is None else np.asarray(data.measured_torque_sigma)[torque_points]
+    dtype = jnp.result_type(float)
+    return TweezerModel(
+        force=data.force,
+        control=jnp.asarray(control, dtype),
+        torque_controlled=jnp.asarray(torque_controlled),
+        extension=data.extension,
+        extension_sigma=data.extension_sigma,
+        force_sigma=data.force_sigma if errors_in_variables else None,
+        turns_sigma=data.turns_sigma if errors_in_variables else None,
+        torque_points=jnp.asarray(torque_points, jnp.int32),
+        measured_torque=jnp.asarray(measured, dtype),
+        measured_torque_sigma=jnp.asarray(measured_sigma, dtype),
+        molecule=data.molecule,
+        n_bp=jnp.asarray(data.n_bp, dtype),
+        kT=thermal_energy(data.temperature),
+        length_per_bp=jnp.asarray(helix_from_bdna()[2], dtype),
+        molecule_names=tuple(data.molecule_names),
+        fit_offsets=bool(fit_offsets),
+        plectonemes_free=bool(turned.any()),
+        errors_in_variables=bool(errors_in_variables),
+    )

@@ -1,0 +1,440 @@
+"""A DNA molecule in a tweezer: the rod's own response plus its thermal fluctuations.
+
+A molecule of $N$ base pairs is held at an axial force $F$ and either turned by a number of
+turns $n$ (magnetic tweezers, linking number counted from the torque-free molecule at that
+force) or held at a torque $\\Gamma$ (a free swivel is $\\Gamma = 0$: optical-tweezer
+force-distance curves).  Three pieces of physics, each written as a free energy per unit
+contour length $L_0 = N\\,h_0$ ($h_0$ the rise of the unloaded helix, 0.34 nm for B-DNA), so
+that extensions and rotations are its derivatives and the phases compare by it:
+
+1. **The rod itself** (intrinsic, enthalpic): the uniform helix of the rod under the axial
+   wrench $(F, \\Gamma)$ (`bulk_helix`, nonlinear in the load), filament length $\\ell$ per
+   base pair.  Its Gibbs free energy per base pair is $\\ell\\,[W(u) - F u_3/|u| - \\Gamma|u|]$
+   (zero for the unloaded helix); by the envelope theorem its force and torque derivatives
+   are minus the extension $\\ell u_3/|u|$ and the rotation $\\ell|u|$.  The rod's twist
+   stiffness at constant force $C_0(F)$ (pN nm^2 per unit contour length) is the inverse
+   torsional compliance of that helix at $\\Gamma = 0$, so bend-twist coupling of the rod
+   enters as $C - g^2/S$ (Gore et al., Nature 442, 836 (2006)).
+2. **Bending fluctuations**: the worm-like chain of bending persistence length $A$.  Its
+   relative extension $z(F)$ is the inverse of the interpolation of Bouchiat et al.
+   (Biophys. J. 76, 409 (1999)), $FA/k_BT = 1/(4(1-z)^2) - 1/4 + z + \\sum_{i=2}^{7} a_i z^i$;
+   against the exact infinite-chain WLC (the ground state of the rotor Hamiltonian of
+   Marko and Siggia, Macromolecules 28, 8759 (1995)) $z$ is within 0.33 % at 0.005-0.01 pN,
+   0.1 % at 0.03 pN, 2.4e-4 at 0.1 pN and 5e-6 from 1 pN up (tests: `test_tweezer`).  The
+   stretch of the rod is added to it as in the extensible WLC: extension
+   $= L_{int}(F, \\Gamma) - L_0(1 - z)$, which is Odijk's $L_0(1 - \\frac12\\sqrt{k_BT/FA} +
+   F/S)$ at high force and for a linear rod.  Free energy per contour length
+   $\\int_0^F (1 - z)\\,dF'$, in closed form from the polynomial.
+3. **Twist fluctuations** (Moroz and Nelson, PNAS 94, 14418 (1997); Macromolecules 31, 6333
+   (1998)): bending fluctuations soften the twist stiffness at constant force to
+   $C_{eff} = C_0\\,(1 - c)$, $c = \\frac{C_0}{4Ak_BT}\\sqrt{k_BT/(AF)}$ (about 351 instead of
+   410 pN nm^2 at 1 pN for A = 50 nm).  Written as a torsional compliance in series with the
+   rod's, $t(F) = 1/C_{eff} - 1/C_0$, with free energy $-\\Gamma^2 t(F)/2$ per contour length;
+   its force derivative is the drop of the extension with turns before buckling,
+   $\\frac{\\Gamma^2}{2} t'(F) L_0$.  The theory is an expansion in $c$: points with
+   $\\Gamma \\ne 0$ and $c > 1/2$ (below ~0.08 pN for DNA) are flagged `outside_model_range`.
+4. **Buckling and plectonemes** (Marko, Phys. Rev. E 76, 021926 (2007)): a plectonemic phase
+   of zero extension stores linking number with the twist persistence $P$, free energy
+   $-\\Gamma^2/(2k_BTP)$ per contour length.  The phases coexist at the torque where the
+   free energies are equal; with the extended phase's free energy to second order in
+   $\\Gamma$, $-g(F) - \\Gamma^2/(2C_{eff})$ ($g(F)$ = minus the free energy of the extended
+   molecule at zero torque: $\\int_0^F z\\,dF'$ plus the rod's stretching energy), this is
+   Marko's closed form
+
+   $$\\Gamma_b = \\sqrt{\\frac{2g(F)}{1/(k_BTP) - 1/C_{eff}}}.$$
+
+   With turns imposed, the molecule is extended while its rotation per base pair is below
+   that of the extended phase at $\\Gamma_b$ ($r_s$), coexists (torque plateau $\\Gamma_b$,
+   extended fraction $x = (r_p - r)/(r_p - r_s)$ with $r_p = h_0\\Gamma_b/(k_BTP)$, so the
+   extension falls linearly with turns) and is fully plectonemic (extension 0) beyond $r_p$.
+   Under a controlled torque it is extended below $\\Gamma_b$ and plectonemic above.  The
+   plectoneme end loops, the multi-plectoneme entropy and the melting of underwound DNA
+   above ~0.5 pN are not in the model (negative turns buckle like positive ones).
+
+Rotations are counted from the torque-free molecule at the same force, in both phases.  The
+default $P$ = 24 nm is the plectoneme twist persistence Marko (2007) uses for ~0.15 M
+monovalent salt; it depends on the buffer: fit it where the data show plectonemes.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from ._bvp import AXIAL_OBSERVABLES, bulk_helix_at
+from ._dna import ROOM_TEMPERATURE, helix_from_bdna, kT as thermal_energy
+from ._misc import float_dtype, is_concrete, safe_sqrt
+from ._rod import check_one_rod
+from ._status import RESULTS, raise_if_failed
+
+#: Coefficients $a_2 \\ldots a_7$ of the WLC interpolation of Bouchiat et al. (1999).
+BOUCHIAT_COEFFICIENTS = (-0.5164228, -2.737418, 16.07497, -38.87607, 39.49944, -14.17718)
+#: Phases of `TweezerResponse.phase`, by code.
+PHASES = ("extended", "coexisting", "plectonemic")
+#: Default twist persistence of the plectonemic phase, nm (Marko 2007, ~0.15 M salt).
+PLECTONEME_TWIST_PERSISTENCE = 24.0
+#: Largest Moroz-Nelson correction c accepted where a torque acts (an expansion in c).
+MAX_TWIST_CORRECTION = 0.5
+
+_FORCE_MOMENT = np.array([AXIAL_OBSERVABLES.index("force"), AXIAL_OBSERVABLES.index("moment")])
+_BISECTIONS = 64
+_CHORD_STEPS = 6
+_TRIAL_NEWTON_STEPS = 16
+# Stands for an infinite buckling torque or rotation inside the computation (finite: see there).
+NO_BUCKLING = 1e100
+
+
+# -- the worm-like chain -------------------------------------------------------------------
+def _bouchiat_force(z):
+    """$FA/k_BT$ of relative extension `z` (dimensionless)."""
+    poly = sum(a * z ** (i + 2) for i, a in enumerate(BOUCHIAT_COEFFICIENTS))
+    return 0.25 / (1.0 - z) ** 2 - 0.25 + z + poly
+
+
+def _bouchiat_integral(z):
+    """$\\int_0^z FA/k_BT\\,dz'$ in closed form."""
+    poly = sum(a * z ** (i + 3) / (i + 3) for i, a in enumerate(BOUCHIAT_COEFFICIENTS))
+    return 0.25 / (1.0 - z) - 0.25 - 0.25 * z + 0.5 * z * z + poly
+
+
+@jax.custom_jvp
+def _wlc_relative_extension(f):
+    """Relative extension $z$ at dimensionless force $f = FA/k_BT \\ge 0$ (bisection: the
+    interpolation is increasing on [0, 1))."""
+
+    def step(_, bracket):
+        lo, hi = bracket
+        mid = 0.5 * (lo + hi)
+        below = _bouchiat_force(mid) < f
+        return jnp.where(below, mid, lo), jnp.where(below, hi, mid)
+
+    lo, hi = jnp.zeros_like(f), jnp.ones_like(f)
+    lo, hi = jax.lax.fori_loop(0, _BISECTIONS, step, (lo, hi))
+    return 0.5 * (lo + hi)
+
+
+@_wlc_relative_extension.defjvp
+def _wlc_jvp(primals, tangents):
+    (f,), (df,) = primals, tangents
+    z = _wlc_relative_extension(f)
+    slope = jax.grad(lambda y: _bouchiat_force(y))
+    return z, df / jnp.vectorize(slope)(z)
+
+
+def _dimensionless_force(force, persistence_length, temperature):
+    return force * persistence_length / thermal_energy(temperature)
+
+
+def wlc_force(
+    relative_extension: ArrayLike, persistence_length: ArrayLike = 50.0, temperature: ArrayLike = ROOM_TEMPERATURE
+) -> Array:
+    """Force (pN) of an inextensible worm-like chain at relative extension $z$ = extension /
+    contour length, bending persistence `persistence_length` (nm): Bouchiat et al. (1999).
+    $0 \\le z < 1$; other values give NaN."""
+    z = jnp.asarray(relative_extension, float_dtype())
+    ok = (z >= 0) & (z < 1)
+    safe = jnp.where(ok, z, 0.5)
+    force = thermal_energy(temperature) / jnp.asarray(persistence_length) * _bouchiat_force(safe)
+    return jnp.where(ok, force, jnp.nan)
+
+
+def wlc_extension(force: ArrayLike, persistence_length: ArrayLike = 50.0, temperature: ArrayLike = ROOM_TEMPERATURE) -> Array:
+    """Relative extension $z$ (extension / contour length) of an inextensible worm-like chain
+    at `force` (pN), the inverse of `wlc_force`; differentiable (implicit function).
+    $F \\ge 0$; a negative or non-finite force gives NaN."""
+    force = jnp.asarray(force, float_dtype())
+    f = _dimensionless_force(force, persistence_length, temperature)
+    ok = jnp.isfinite(f) & (f >= 0)
+    return jnp.where(ok, _wlc_relative_extension(jnp.where(ok, f, 1.0)), jnp.nan)
+
+
+def wlc_free_energy(force: ArrayLike, persistence_length: ArrayLike = 50.0, temperature: ArrayLike = ROOM_TEMPERATURE) -> Array:
+    """$\\int_0^F z\\,dF'$ (pN, i.e. pN nm per nm of contour): minus the Gibbs free energy per
+    contour length of a worm-like chain held at `force`, in closed form from the
+    interpolation ($fz - \\int_0^z f\\,dz'$ in units of $k_BT/A$)."""
+    force = jnp.asarray(force, float_dtype())
+    energy_unit = thermal_energy(temperature) / jnp.asarray(persistence_length)
+    f = force / energy_unit
+    z = wlc_extension(force, persistence_length, temperature)
+    return energy_unit * (f * z - _bouchiat_integral(z))
+
+
+def moroz_nelson_twist_modulus(
+    twist_modulus: ArrayLike, force: ArrayLike, persistence_length: ArrayLike = 50.0, temperature: ArrayLike = ROOM_TEMPERATURE
+) -> Array:
+    """The effective twist modulus (pN nm^2) at constant force of a molecule with intrinsic
+    twist modulus $C$ (pN nm^2) and bending persistence $A$ (nm) at `force` (pN):
+    $C(1 - \\frac{C}{4Ak_BT}\\sqrt{k_BT/(AF)})$ (Moroz and Nelson 1997, valid while the
+    correction is small; NaN where it reaches 1)."""
+    kT = thermal_energy(temperature)
+    C = jnp.asarray(twist_modulus, float_dtype())
+    A = jnp.asarray(persistence_length)
+    c = C / (4 * A * kT) * jnp.sqrt(kT / (A * jnp.asarray(force)))
+    return jnp.where(c < 1, C * (1 - c), jnp.nan)
+
+
+# -- the response --------------------------------------------------------------------------
+class TweezerResponse(eqx.Module):
+    """The state of molecules in a tweezer (`tweezer_response`); every field per point.
+
+    `extension` (nm) and `torque` (pN nm) and `turns` (from the torque-free molecule at the
+    same force) -- one of the last two was imposed, the other is the response; `phase` (a code
+    into `PHASES`: 0 extended, 1 coexisting, 2 plectonemic) and `extended_fraction` (the
+    fraction of the contour in the extended phase).  The extension in parts (each times the
+    extended fraction): `intrinsic_extension`, the rod's uniform helix under $(F, \\Gamma)$;
+    `bending_extension` $= -L_0(1 - z)$, the worm-like chain's shortening;
+    `twist_extension`, the shortening by twist fluctuations under torque.  At the force:
+    `twist_modulus` $C_0$ of the rod at constant force, `effective_twist_modulus` $C_{eff}$
+    (Moroz-Nelson), `buckling_torque` $\\Gamma_b > 0$ (inf: no buckling), all per unit
+    contour length.  `result`: a `RESULTS` code per point (`invalid_input`,
+    `outside_model_range`, or the bulk-helix solver's); `ok`.
+    """
+
+    extension: Float[Array, "*batch"]
+    torque: Float[Array, "*batch"]
+    turns: Float[Array, "*batch"]
+    phase: Int[Array, "*batch"]
+    extended_fraction: Float[Array, "*batch"]
+    intrinsic_extension: Float[Array, "*batch"]
+    bending_extension: Float[Array, "*batch"]
+    twist_extension: Float[Array, "*batch"]
+    twist_modulus: Float[Array, "*batch"]
+    effective_twist_modulus: Float[Array, "*batch"]
+    buckling_torque: Float[Array, "*batch"]
+    result: RESULTS
+
+    @property
+    def ok(self):
+        """Whether each point was computed within the model (`result` successful)."""
+        return self.result == RESULTS.successful
+
+
+def _bulk(rod, ell, force, torque):
+    """The rod's helix under (force, torque) and its Gibbs free energy per base pair.
+
+    A plain Newton iteration (no derivatives) goes first; where it does not converge the
+    differentiated solve runs at zero load instead (and the point is flagged).  Derivatives
+    are those of two Newton steps from the frozen root (`newton_derivatives`): exact to
+    second order -- the twist stiffness is itself a derivative, differentiated again by a
+    fit -- and dense solves that never raise when a least-squares solver probes with a
+    non-finite tangent."""
+    values = jnp.stack([force, torque, 0.0 * force, 0.0 * force])
+    trial = bulk_helix_at(rod, ell, _FORCE_MOMENT, values, max_steps=_TRIAL_NEWTON_STEPS, light=True)
+    good = trial.ok & jnp.all(jnp.isfinite(trial.u))
+    bulk = bulk_helix_at(
+        rod, ell, _FORCE_MOMENT, jnp.where(good, values, 0.0), max_steps=_TRIAL_NEWTON_STEPS, newton_derivatives=True,
+        guess=(jnp.where(good, trial.u, jnp.asarray(rod.uhat)), jnp.where(good, trial.mu1, 0.0), jnp.where(good, trial.mu2, 0.0)),
+    )
+    gibbs = ell * (rod.energy(bulk.u) - force * bulk.extension / ell - torque * bulk.rotation / ell)
+    result = RESULTS.where(good, bulk.result, RESULTS.residual_above_tolerance)
+    return eqx.tree_at(lambda b: b.result, bulk, result), gibbs
+
+
+def response_point(rod, ell, rise, force, control, torque_controlled, persistence_length, plectoneme_twist, kT):
+    """One base pair's extension, rotation and state at `force` under `control` (a torque if
+    `torque_controlled`, else a rotation per base pair in radians); helper of
+    `tweezer_response` and of the tweezer fit model, unbatched and traced.
+
+    Returns `(extension_per_bp, rotation_per_bp, torque, phase, fraction, parts, moduli,
+    result)` with `parts = (intrinsic, bending, twist)` per base pair and `moduli =
+    (C0, C_eff, buckling_torque)`; the values are computed (finite where possible) also
+    where `result` flags the point, so a fit sees a smooth cost."""
+    dtype = float_dtype()
+    A, P = persistence_length, plectoneme_twist
+    good_input = jnp.isfinite(force) & (force > 0) & jnp.isfinite(control) & (A > 0) & (P > 0)
+    F = jnp.where(good_input, force, 1.0)
+    control = jnp.where(good_input, control, 0.0)
+
+    # The rod at zero torque, and its torsional compliance there (one tangent).
+    def rotation_at(torque):
+        bulk, gibbs = _bulk(rod, ell, F, torque)
+        return bulk.rotation, (bulk.extension, gibbs, bulk.result)
+
+    zero = jnp.zeros((), dtype)
+    rotation0, compliance, (_, gibbs0, result0) = jax.jvp(rotation_at, (zero,), (jnp.ones_like(zero),), has_aux=True)
+    C0 = rise / compliance
+
+    # Twist fluctuations (Moroz-Nelson) as a series compliance t(F) and its force derivative.
+    c = C0 / (4 * A * kT) * jnp.sqrt(kT / (A * F))
+    c_safe = jnp.minimum(c, MAX_TWIST_CORRECTION)
+    series = c_safe / (C0 * (1 - c_safe))
+    series_slope = -c_safe / (2 * F) / (C0 * (1 - c_safe) ** 2)
+    C_eff = 1.0 / (1.0 / C0 + series)
+
+    # Bending fluctuations: extension and free energy per contour length.
+    unit = kT / A
+    z = _wlc_relative_extension(F / unit)
+    wlc_gibbs = F - unit * (F / unit * z - _bouchiat_integral(z))  # integral of (1 - z) dF
+    stretch_energy = -(gibbs0 / rise + wlc_gibbs)  # g(F) > 0
+
+    # Buckling torque (Marko 2007); NO_BUCKLING where the plectoneme is the stiffer phase.
+    # Every branch stays finite (also those a `where` discards): reverse-mode derivatives
+    # through the fit multiply by zero cotangents there, and 0 * inf would be NaN.
+    plectoneme_modulus = kT * P
+    softer = 1.0 / plectoneme_modulus - 1.0 / C_eff
+    buckles = softer > 0
+    buckling = jnp.where(
+        buckles, safe_sqrt(2 * jnp.maximum(stretch_energy, 0.0) / jnp.where(buckles, softer, 1.0)), NO_BUCKLING
+    )
+
+    def extended_rotation(torque):
+        bulk, _ = _bulk(rod, ell, F, torque)
+        return bulk.rotation - rotation0 + rise * torque * series
+
+    # Rotation of the extended phase at the buckling torque (sign of the control).
+    sign = jnp.where(control < 0, -1.0, 1.0)
+    plateau = sign * jnp.where(buckles, buckling, 0.0)
+    r_s = jnp.where(buckles, jnp.abs(extended_rotation(plateau)), NO_BUCKLING)
+    r_p = jnp.where(buckles, rise * buckling / plectoneme_modulus, 2 * NO_BUCKLING)
+
+    # The extended phase's torque: given, or by chord steps on the rotation (slope rise/C_eff).
+    r = jnp.abs(control)
+    target = jnp.minimum(r, r_s) * sign
+
+    def chord(_, torque):
+        return torque + (target - extended_rotation(torque)) * C_eff / rise
+
+    turned = jax.lax.fori_loop(0, _CHORD_STEPS, chord, target * C_eff / rise)
+    turned = jnp.where(r >= r_s, plateau, turned)
+    beyond_plateau = torque_controlled & (jnp.abs(control) >= buckling)
+    torque_extended = jnp.where(torque_controlled, jnp.where(beyond_plateau, plateau, control), turned)
+
+    bulk, _ = _bulk(rod, ell, F, torque_extended)
+    intrinsic = bulk.extension
+    bending = -rise * (1 - z)
+    twist = rise * 0.5 * torque_extended**2 * series_slope
+    rotation_extended = bulk.rotation - rotation0 + rise * torque_extended * series
+
+    # Phases.
+    coexisting = ~torque_controlled & (r > r_s) & (r < r_p)
+    plectonemic = jnp.where(torque_controlled, beyond_plateau, r >= r_p)
+    fraction = jnp.where(coexisting, (r_p - r) / jnp.where(coexisting, r_p - r_s, 1.0), 1.0)
+    fraction = jnp.where(plectonemic, 0.0, fraction)
+    phase = jnp.where(plectonemic, 2, jnp.where(coexisting, 1, 0))
+    torque = jnp.where(
+        torque_controlled, control, jnp.where(plectonemic, sign * plectoneme_modulus * r / rise, torque_extended)
+    )
+    rotation = jnp.where(
+        torque_controlled,
+        jnp.where(plectonemic, rise * control / plectoneme_modulus, rotation_extended),
+        control,
+    )
+    parts = tuple(fraction * p for p in (intrinsic, bending, twist))
+    extension = parts[0] + parts[1] + parts[2]
+
+    twisted = control != 0  # a torque acts (turns or a torque imposed)
+    result = RESULTS.where(bulk.result == RESULTS.successful, result0, bulk.result)
+    result = RESULTS.where(twisted & (c > MAX_TWIST_CORRECTION), RESULTS.outside_model_range, result)
+    result = RESULTS.where(good_input & jnp.isfinite(extension), result, RESULTS.invalid_input)
+    return extension, rotation, torque, phase, fraction, parts, (C0, C_eff, buckling), result
+
+
+
+@eqx.filter_jit
+def _responses(rod, ell, rise, force, control, torque_controlled, n_bp, persistence_length, plectoneme_twist, kT):
+    def one(F, x, by_torque, N, A, P):
+        per_bp = jnp.where(by_torque, x, 2 * jnp.pi * x / N)  # a torque, or radians per bp
+        ext, rot, torque, phase, fraction, parts, moduli, result = response_point(
+            rod, ell, rise, F, per_bp, by_torque, A, P, kT
+        )
+        good = result == RESULTS.successful
+        masked = lambda x: jnp.where(good, x, jnp.nan)  # noqa: E731
+        return (
+            masked(ext * N), masked(rot * N), masked(torque), phase, masked(fraction),
+            tuple(masked(p * N) for p in parts),
+            (masked(moduli[0]), masked(moduli[1]), masked(jnp.where(moduli[2] >= NO_BUCKLING, jnp.inf, moduli[2]))),
+            result,
+        )
+
+    return jax.vmap(one)(force, control, torque_controlled, n_bp, persistence_length, plectoneme_twist)
+
+
+def tweezer_response(
+    rod,
+    n_bp: ArrayLike,
+    force: ArrayLike,
+    *,
+    turns: ArrayLike | None = None,
+    torque: ArrayLike | None = None,
+    persistence_length: ArrayLike = 50.0,
+    plectoneme_twist_persistence: ArrayLike = PLECTONEME_TWIST_PERSISTENCE,
+    temperature: float = ROOM_TEMPERATURE,
+    length_per_bp: float | None = None,
+    throw: bool = False,
+) -> TweezerResponse:
+    """Extension, torque and phase of DNA molecules of `n_bp` base pairs at `force` (pN),
+    turned by `turns` (magnetic tweezers: counted from the torque-free molecule at that
+    force, positive = overwound) or held at `torque` (pN nm; 0 = a free swivel).  Give one
+    of `turns` and `torque`.  The physics is in the module docstring (`helixrod._tweezer`):
+    the rod's own nonlinear response, worm-like-chain bending fluctuations of persistence
+    `persistence_length` (nm), Moroz-Nelson twist softening, and Marko's two-phase model of
+    plectonemes with twist persistence `plectoneme_twist_persistence` (nm).
+
+    `rod`: stiffnesses in pN nm^2 and twists in 1/nm, its `uhat` the backbone helix (e.g.
+    `dna.load_tweezer_example().rod`); `length_per_bp`: the filament length per base pair
+    (default: the B-DNA backbone of `helix_from_bdna`).  Array arguments broadcast
+    elementwise (one point each); jit, vmap and differentiable in the rod and every
+    parameter.  `throw=True` raises `SolverError` if a point fails; otherwise read `result`
+    and `ok` (a failed or out-of-range point is NaN, the others are untouched).
+
+    **Example**
+
+    ```python
+    rod = dna.load_tweezer_example().rod
+    hat = dna.tweezer_response(rod, 8000, 1.0, turns=jnp.linspace(-40, 40, 81))
+    hat.extension, hat.torque, hat.phase
+    ```
+    """
+    check_one_rod(rod, "tweezer_response")
+    if (turns is None) == (torque is None):
+        raise ValueError("tweezer_response: give exactly one of turns= and torque=")
+    dtype = float_dtype()
+    by_torque = torque is not None
+    control = jnp.asarray(torque if by_torque else turns, dtype)
+    arrays = [jnp.asarray(x, dtype) for x in (n_bp, force, control, persistence_length, plectoneme_twist_persistence)]
+    try:
+        shape = jnp.broadcast_shapes(*(a.shape for a in arrays))
+    except ValueError:
+        shapes = ", ".join(f"{n} {a.shape}" for n, a in zip(("n_bp", "force", "control", "persistence_length", "plectoneme_twist_persistence"), arrays))
+        raise ValueError(f"tweezer_response: shapes do not broadcast: {shapes}") from None
+    n, F, x, A, P = (jnp.broadcast_to(a, shape).reshape(-1) for a in arrays)
+    if is_concrete(n, F, x, A, P):
+        for name, values, positive in (("n_bp", n, True), ("force", F, True), ("turns" if not by_torque else "torque", x, False), ("persistence_length", A, True), ("plectoneme_twist_persistence", P, True)):
+            bad = ~np.isfinite(np.asarray(values)) | ((np.asarray(values) <= 0) if positive else False)
+            if bad.any():
+                rule = "finite and > 0" if positive else "finite"
+                raise ValueError(f"tweezer_response: {name} must be {rule} (bad at flat indices {np.flatnonzero(bad)[:5].tolist()})")
+    if not (math.isfinite(temperature) and temperature > 0):
+        raise ValueError(f"tweezer_response: temperature must be finite and > 0 kelvin, got {temperature}")
+    kappa0, tau0, ell_bdna = helix_from_bdna()
+    ell = jnp.asarray(ell_bdna if length_per_bp is None else length_per_bp, dtype)
+    uhat = jnp.asarray(rod.uhat, dtype)
+    rise = ell * uhat[2] / jnp.linalg.norm(uhat)
+    if x.size == 0:
+        empty = jnp.zeros(shape, dtype)
+        return TweezerResponse(*([empty] * 3), jnp.zeros(shape, jnp.int32), *([empty] * 7), RESULTS.where(jnp.zeros(shape, bool), RESULTS.successful, RESULTS.successful))
+    kT = thermal_energy(temperature)
+    by_torque_mask = jnp.full(x.shape, by_torque)
+    ext, rot, tq, phase, fraction, parts, moduli, result = _responses(rod, ell, rise, F, x, by_torque_mask, n, A, P, kT)
+    turns_out = rot / (2 * jnp.pi) if by_torque else x
+    shaped = lambda a: a.reshape(shape)  # noqa: E731
+    response = TweezerResponse(
+        extension=shaped(ext),
+        torque=shaped(tq),
+        turns=shaped(turns_out),
+        phase=shaped(phase),
+        extended_fraction=shaped(fraction),
+        intrinsic_extension=shaped(parts[0]),
+        bending_extension=shaped(parts[1]),
+        twist_extension=shaped(parts[2]),
+        twist_modulus=shaped(moduli[0]),
+        effective_twist_modulus=shaped(moduli[1]),
+        buckling_torque=shaped(moduli[2]),
+        result=jax.tree.map(shaped, result),
+    )
+    return raise_if_failed(response, response.result, "tweezer_response") if throw else response

@@ -1,0 +1,191 @@
+"""A DNA molecule in a tweezer (`helixrod._tweezer`): the worm-like chain against the exact
+infinite chain (the rotor ground state), the stiff-rod and Odijk limits (lumicks pylake),
+Moroz-Nelson softening from the rod's own moduli, Marko's closed forms for buckling and
+the plateau, derivatives against central differences, bad input and flagged points; the
+tweezer fit recovers its generating parameters (slow)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import quad
+from scipy.linalg import eigh_tridiagonal
+from scipy.optimize import brentq
+
+import helixrod as hr
+from helixrod import _tweezer as tw, dna
+
+ROD = dna.load_tweezer_example().rod
+KT = float(dna.kT())
+A = 50.0
+RISE = float(dna.helix_from_bdna()[2] * ROD.uhat[2] / jnp.linalg.norm(ROD.uhat))
+
+
+def exact_wlc(f, lmax=600):
+    """Relative extension of the infinite worm-like chain at f = FA/kT: minus the derivative
+    of the ground-state energy of H = -(1/2) Laplacian - f cos(theta) on the sphere, in the
+    Legendre basis (Marko and Siggia 1995), by a central difference."""
+    l = np.arange(lmax)
+    diagonal = l * (l + 1) / 2.0
+    off = -(l[:-1] + 1) / np.sqrt((2 * l[:-1] + 1) * (2 * l[:-1] + 3))
+
+    def energy(x):
+        return eigh_tridiagonal(diagonal, x * off, select="i", select_range=(0, 0))[0][0]
+
+    h = 1e-5 * max(f, 1e-3)
+    return -(energy(f + h) - energy(f - h)) / (2 * h)
+
+
+def bouchiat_inverse(f):
+    coefficients = (0, 0) + tw.BOUCHIAT_COEFFICIENTS
+    force = lambda z: 0.25 / (1 - z) ** 2 - 0.25 + z + sum(a * z**i for i, a in enumerate(coefficients))  # noqa: E731
+    return brentq(lambda z: force(z) - f, 0.0, 1 - 1e-12, xtol=1e-15)
+
+
+def test_wlc_against_the_exact_chain():
+    forces = np.array([0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 60.0])
+    z = np.asarray(tw.wlc_extension(forces, A))
+    exact = np.array([exact_wlc(F * A / KT) for F in forces])
+    error = np.abs(z / exact - 1)
+    assert np.all(error <= 5e-3)  # measured 2.8e-3 at 0.01 pN
+    assert np.all(error[forces >= 0.3] <= 1e-4)  # measured 4e-5 at 0.3 pN, 5e-6 from 1 pN
+    # Inverse of the interpolation, and its free energy is the integral of z.
+    np.testing.assert_allclose(tw.wlc_force(z, A), forces, rtol=1e-12)
+    for F in (0.1, 2.0, 20.0):
+        integral = quad(lambda x: bouchiat_inverse(x * A / KT), 0.0, F, epsabs=1e-12)[0]
+        np.testing.assert_allclose(tw.wlc_free_energy(F, A), integral, rtol=1e-9)
+    slope = jax.grad(lambda F: tw.wlc_extension(F, A))(2.0)
+    central = (tw.wlc_extension(2.0 + 1e-5, A) - tw.wlc_extension(2.0 - 1e-5, A)) / 2e-5
+    np.testing.assert_allclose(slope, central, rtol=1e-7)
+    assert np.isnan(tw.wlc_extension(-1.0)) and np.isnan(tw.wlc_force(1.0))
+
+
+def test_a_stiff_rod_is_the_inextensible_chain():
+    stiff = ROD.scaled(1e6)
+    forces = jnp.array([0.3, 1.0, 5.0, 20.0])
+    response = tw.tweezer_response(stiff, 5000, forces, torque=0.0, persistence_length=A)
+    exact = np.array([exact_wlc(F * A / KT) for F in np.asarray(forces)])
+    np.testing.assert_allclose(response.extension / (5000 * RISE), exact, rtol=1e-4)
+    assert bool(jnp.all(response.ok)) and bool(jnp.all(response.phase == 0))
+
+
+def test_free_swivel_matches_pylake_odijk_in_its_range():
+    odijk = pytest.importorskip("lumicks.pylake.fitting.detail.model_implementation").ewlc_odijk_distance
+    S, C, g = (float(x) for x in dna.effective_moduli(ROD, ROD.uhat))
+    stretch_at_zero_torque = S - g**2 / C
+    forces = np.array([10.0, 15.0, 20.0, 30.0])
+    n_bp = 8000
+    response = tw.tweezer_response(ROD, n_bp, forces, torque=0.0, persistence_length=A)
+    peer = odijk(forces, A, n_bp * RISE, stretch_at_zero_torque, KT)
+    # The difference is Odijk's asymptotic WLC against the exact one and the rod's own
+    # nonlinearity (F/S ~ 3 %, its square ~ 1e-3): measured 3.2e-4 at most.
+    np.testing.assert_allclose(response.extension, peer, rtol=1e-3)
+
+
+def test_moroz_nelson_softening_of_the_rods_own_twist_modulus():
+    np.testing.assert_allclose(tw.moroz_nelson_twist_modulus(410.0, 1.0, 50.0), 351.0, rtol=2e-3)
+    S, C, g = (float(x) for x in dna.effective_moduli(ROD, ROD.uhat))
+    response = tw.tweezer_response(ROD, 1000, jnp.array([0.5, 1.0, 4.0]), turns=0.0, persistence_length=A)
+    # The rod's twist modulus at constant force, C - g^2/S at zero load (a helix per unit
+    # axial length; its force dependence is the rod's nonlinearity, < 2 % here).
+    np.testing.assert_allclose(response.twist_modulus, C - g**2 / S, rtol=2e-2)
+    np.testing.assert_allclose(
+        response.effective_twist_modulus, tw.moroz_nelson_twist_modulus(response.twist_modulus, jnp.array([0.5, 1.0, 4.0]), A),
+        rtol=1e-12,
+    )
+
+
+def test_buckling_torque_and_plateau_follow_marko():
+    F, P, n_bp = 1.0, 24.0, 8000
+    turns = jnp.linspace(-40.0, 40.0, 161)
+    hat = tw.tweezer_response(ROD, n_bp, F, turns=turns, persistence_length=A, plectoneme_twist_persistence=P)
+    assert bool(jnp.all(hat.ok))
+    # Marko's closed form with g(F) from an independent quadrature of the chain and the
+    # rod's linear stretch energy at zero torque.
+    S, C, g = (float(x) for x in dna.effective_moduli(ROD, ROD.uhat))
+    wlc = quad(lambda x: bouchiat_inverse(x * A / KT), 0.0, F, epsabs=1e-12)[0]
+    g_F = wlc + F**2 / (2 * (S - g**2 / C))
+    C_eff = float(hat.effective_twist_modulus[0])
+    marko = np.sqrt(2 * g_F / (1 / (KT * P) - 1 / C_eff))
+    np.testing.assert_allclose(hat.buckling_torque, marko, rtol=1e-3)
+    coexisting = np.asarray(hat.phase == 1)
+    assert coexisting.sum() > 20 and np.all(np.asarray(hat.phase)[np.abs(np.asarray(turns)) < 10] == 0)
+    # Plateau: the torque is the buckling torque and the extension falls linearly with turns.
+    np.testing.assert_allclose(np.abs(hat.torque[coexisting]), hat.buckling_torque[coexisting], rtol=1e-9)
+    right = coexisting & (np.asarray(turns) > 0)
+    slope = np.polyfit(np.asarray(turns)[right], np.asarray(hat.extension)[right], 1, full=True)
+    assert slope[1][0] < 1e-12 * float(jnp.max(hat.extension)) ** 2 * right.sum()
+    # Beyond the plateau every turn goes to the plectoneme: zero extension.
+    beyond = tw.tweezer_response(ROD, n_bp, F, turns=400.0, persistence_length=A)
+    assert int(beyond.phase) == 2 and float(beyond.extension) == 0.0
+    # Under a controlled torque above the plateau the molecule is plectonemic too.
+    held = tw.tweezer_response(ROD, n_bp, F, torque=jnp.array([0.5, 1.5]) * float(hat.buckling_torque[0]))
+    assert held.phase.tolist() == [0, 2]
+
+
+def test_twist_stretch_coupling_tilts_the_hat():
+    # g < 0 (overwinding under tension): the extension peaks at positive turns.
+    turns = jnp.linspace(-6.0, 6.0, 121)
+    hat = tw.tweezer_response(ROD, 8000, 2.0, turns=turns, persistence_length=A)
+    assert float(turns[jnp.argmax(hat.extension)]) > 0
+
+
+def test_derivatives_match_central_differences():
+    def extension(K2, persistence, turns):
+        rod = hr.Rod(ROD.K1, K2, ROD.K3, ROD.K13, ROD.K23, ROD.uhat)
+        return tw.tweezer_response(rod, 8000, 1.0, turns=turns, persistence_length=persistence).extension
+
+    x = (float(ROD.K2), 48.0, 5.0)
+    grads = jax.grad(extension, argnums=(0, 1, 2))(*x)
+    for i, h in enumerate((1.0, 1e-3, 1e-3)):
+        up, down = list(x), list(x)
+        up[i] += h
+        down[i] -= h
+        central = (extension(*up) - extension(*down)) / (2 * h)
+        np.testing.assert_allclose(grads[i], central, rtol=1e-5)
+
+
+def test_bad_input_and_flagged_points():
+    with pytest.raises(ValueError, match="exactly one of turns= and torque="):
+        tw.tweezer_response(ROD, 1000, 1.0)
+    with pytest.raises(ValueError, match="force must be finite and > 0"):
+        tw.tweezer_response(ROD, 1000, jnp.array([1.0, -1.0]), torque=0.0)
+    with pytest.raises(ValueError, match="n_bp must be finite and > 0"):
+        tw.tweezer_response(ROD, 0, 1.0, torque=0.0)
+    with pytest.raises(ValueError, match="do not broadcast"):
+        tw.tweezer_response(ROD, 1000, jnp.ones(3), turns=jnp.ones(2))
+    # Traced: a bad point is flagged and NaN, the others are untouched.
+    forces = jnp.array([1.0, jnp.nan, 2.0])
+    batch = jax.jit(lambda f: tw.tweezer_response(ROD, 1000, f, turns=3.0))(forces)
+    assert batch.ok.tolist() == [True, False, True]
+    assert bool(jnp.isnan(batch.extension[1]))
+    alone = tw.tweezer_response(ROD, 1000, 2.0, turns=3.0)
+    np.testing.assert_allclose(batch.extension[2], alone.extension, rtol=1e-12)
+    # Twisted at a force too low for the twist-fluctuation theory: outside its range.
+    low = tw.tweezer_response(ROD, 1000, jnp.array([0.02, 0.02]), turns=jnp.array([0.0, 2.0]))
+    assert low.ok.tolist() == [True, False]
+    assert "range of validity" in hr.RESULTS[jax.tree.map(lambda code: code[1], low.result)]
+    with pytest.raises(hr.SolverError, match="1 of 2 points failed"):
+        tw.tweezer_response(ROD, 1000, jnp.array([0.02, 0.02]), turns=jnp.array([0.0, 2.0]), throw=True)
+
+
+@pytest.mark.slow
+def test_tweezer_fit_recovers_the_generating_parameters():
+    rng = np.random.default_rng(1)
+    forces = np.geomspace(0.05, 40, 60)
+    turns = np.tile(np.linspace(-30, 30, 31), 3)
+    hat_forces = np.repeat([0.5, 1.0, 2.0], 31)
+    n_bp, sigma = 8000, 5.0
+    fd = tw.tweezer_response(ROD, n_bp, forces, torque=0.0, persistence_length=48.0)
+    hat = tw.tweezer_response(ROD, n_bp, hat_forces, turns=turns, persistence_length=48.0)
+    extension = np.concatenate([fd.extension, hat.extension]) + sigma * rng.normal(size=forces.size + hat_forces.size)
+    data = dna.TweezerData.from_arrays(
+        np.concatenate([forces, hat_forces]), extension, extension_sigma=sigma,
+        turns=np.concatenate([np.full(forces.size, np.nan), turns]),
+        torque=np.concatenate([np.zeros(forces.size), np.full(hat_forces.size, np.nan)]), n_bp=n_bp,
+    )
+    fit = hr.fit_stiffness(data, uhat=ROD.uhat, init=ROD, fix={"K13": 0.0, "K1": float(ROD.K1)})
+    assert fit.ok and 0.6 < fit.chi2_reduced < 1.4
+    truth = {"K2": ROD.K2, "K3": ROD.K3, "K23": ROD.K23, "persistence_length": 48.0, "plectoneme_twist_persistence": 24.0}
+    for name, value in truth.items():
+        assert abs(float(fit.params[name]) - float(value)) < 3 * float(fit.stderr[name]), name

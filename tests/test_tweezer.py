@@ -189,3 +189,29 @@ def test_tweezer_fit_recovers_the_generating_parameters():
     truth = {"K2": ROD.K2, "K3": ROD.K3, "K23": ROD.K23, "persistence_length": 48.0, "plectoneme_twist_persistence": 24.0}
     for name, value in truth.items():
         assert abs(float(fit.params[name]) - float(value)) < 3 * float(fit.stderr[name]), name
+
+
+def test_moduli_along_the_force_range():
+    forces = jnp.array([1e-3, 1.0, 10.0, 40.0])
+    moduli = dna.tweezer_moduli(ROD, forces, persistence_length=A)
+    S, C, g = (float(x) for x in dna.effective_moduli(ROD, ROD.uhat))
+    # At vanishing force: the zero-load moduli of effective_moduli (an independent path,
+    # through helix_equilibria and spring_compliance).
+    np.testing.assert_allclose(
+        [moduli.stretch_modulus[0], moduli.twist_modulus[0], moduli.twist_stretch_coupling[0]], [S, C, g], rtol=1e-5
+    )
+    # The twist modulus at constant force (a tangent of the rotation, per unit contour length)
+    # is C - g^2/S of the compliance (per unit axial length) times the stretch h/h0.
+    stretch = tw.tweezer_response(ROD, 1, forces, torque=0.0).intrinsic_extension / RISE
+    np.testing.assert_allclose(
+        moduli.twist_modulus_at_constant_force * stretch,
+        moduli.twist_modulus - moduli.twist_stretch_coupling**2 / moduli.stretch_modulus, rtol=1e-9,
+    )
+    np.testing.assert_allclose(
+        moduli.effective_twist_modulus[1:],
+        tw.moroz_nelson_twist_modulus(moduli.twist_modulus_at_constant_force[1:], forces[1:], A), rtol=1e-12,
+    )
+    assert bool(jnp.isnan(moduli.effective_twist_modulus[0]))  # below the theory's range
+    # The coupling weakens with force (the rod's nonlinearity), and the buckling torque grows.
+    assert np.all(np.diff(np.asarray(moduli.twist_stretch_coupling)) > 0)
+    assert np.all(np.diff(np.asarray(moduli.buckling_torque[1:])) > 0)

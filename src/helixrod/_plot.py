@@ -344,3 +344,122 @@ def plot_rod_atlas(rod, path=None, *, kappa=(0.0, 3.0), tau=(-3.0, 3.0), n=241, 
 
     result = sweep(rod, np.linspace(*kappa, n), np.linspace(*tau, n), fields=SUMMARY_FIELDS, progress=progress)
     return plot_sweep_summary(result, path)
+
+
+# -- tweezer curves ---------------------------------------------------------------------------
+def _groups(*keys):
+    """Indices of the points of each distinct combination of `keys` (arrays of equal
+    length), in order of first appearance."""
+    out: dict = {}
+    for i, key in enumerate(zip(*keys)):
+        out.setdefault(key, []).append(i)
+    return [(k, np.asarray(v)) for k, v in out.items()]
+
+
+def _signed_residuals(fit, data_values, predicted, start, count):
+    """`(data - fit) / sigma` at `count` points: minus the fit's normalised residuals
+    `fit.residuals[start:start + count]` (prediction minus data over sigma, the sigmas with
+    errors in variables where the fit used them); `None` where the fit has no such residuals."""
+    r = np.asarray(getattr(fit, "residuals", np.zeros(0)), dtype=float)
+    if r.shape[0] < start + count:
+        return None
+    return -r[start : start + count]
+
+
+def plot_tweezer_fit(fit, data, path=None):
+    """A `StiffnessFit` of `TweezerData` in tweezer coordinates, one column per kind of curve
+    present, the curves above and the residuals (data minus fit over the point's sigma, as in
+    the fit: with errors in variables where the fit used them) below:
+
+    - extension against force of the torque-controlled points (a free swivel: the
+      force-extension curve), one colour per molecule (and torque), logarithmic force axis;
+    - hat curves, extension against turns, one colour per force and one marker per molecule;
+    - measured torque against turns where a torque was measured.
+
+    Points are the data with error bars (their sigmas: `extension_sigma`,
+    `measured_torque_sigma`), lines the fit's predictions at the data points
+    (`fit.predicted["extension"]`, `fit.predicted["torque"]`, in the order of the data), so the
+    lines join the points of one curve.  `path=None` returns the matplotlib `Figure`;
+    otherwise writes it (PNG/PDF/SVG by suffix) and returns `path`."""
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+
+    force = np.asarray(data.force, dtype=float)
+    extension = np.asarray(data.extension, dtype=float)
+    sigma = np.asarray(data.extension_sigma, dtype=float)
+    turns, torque = np.asarray(data.turns, dtype=float), np.asarray(data.torque, dtype=float)
+    by_torque = np.asarray(data.torque_controlled, dtype=bool)
+    measured = np.asarray(data.has_measured_torque, dtype=bool)
+    molecule = np.asarray(data.molecule)
+    names = data.molecule_names
+    n = extension.shape[0]
+    ext_fit = np.asarray(fit.predicted["extension"], dtype=float)
+    if ext_fit.shape != (n,):
+        raise ValueError(f"plot_tweezer_fit: fit.predicted['extension'] has shape {ext_fit.shape}, the data {n} points")
+    ext_res = _signed_residuals(fit, extension, ext_fit, 0, n)
+    if ext_res is None:
+        ext_res = (extension - ext_fit) / sigma
+    columns = [kind for kind, present in (("fd", by_torque.any()), ("hat", (~by_torque).any()), ("torque", measured.any())) if present]
+    fig = Figure(figsize=(4.8 * len(columns), 6.2), layout="constrained")
+    axes = fig.subplots(2, len(columns), sharex="col", squeeze=False, gridspec_kw={"height_ratios": [3, 1]})
+    markers = "osD^vP*X"
+    residual_label = "(data $-$ fit) / $\\sigma$ (dimensionless)"
+
+    def curve(ax, rax, idx, x, y, yfit, err, res, colour, marker, label=None):
+        order = idx[np.argsort(x[idx], kind="stable")]
+        ax.errorbar(x[order], y[order], yerr=err[order], fmt=marker, ms=3.5, color=colour, ecolor="0.7",
+                    elinewidth=0.8, mfc="white" if marker != "o" else colour, label=label)
+        ax.plot(x[order], yfit[order], "-", color=colour, lw=1.2)
+        rax.plot(x[order], res[order], marker, ms=3, color=colour, mfc="white" if marker != "o" else colour)
+
+    for col, kind in enumerate(columns):
+        ax, rax = axes[0, col], axes[1, col]
+        rax.axhline(0.0, color="k", lw=0.8)
+        if kind == "fd":
+            idx = np.flatnonzero(by_torque)
+            groups = _groups(molecule[idx], torque[idx])
+            for g, ((m, t), members) in enumerate(groups):
+                label = names[m] + (f", torque {t:g} pN nm" if t != 0 else "")
+                curve(ax, rax, idx[members], force, extension, ext_fit, sigma, ext_res, OKABE_ITO[g % 8], "o", label)
+            if force[idx].max() > 10 * force[idx].min():
+                ax.set_xscale("log")
+            ax.set_ylabel("extension (nm)")
+            ax.set_title("force-extension (torque-controlled points)")
+            rax.set_xlabel("force (pN)")
+            ax.legend(fontsize=7, title="molecule", title_fontsize=7)
+        elif kind == "hat":
+            idx = np.flatnonzero(~by_torque)
+            levels = sorted({float(f"{f:.4g}") for f in force[idx]})
+            rounded = np.array([float(f"{f:.4g}") for f in force[idx]])
+            for (m, f), members in _groups(molecule[idx], rounded):
+                colour = OKABE_ITO[levels.index(f) % 8]
+                curve(ax, rax, idx[members], turns, extension, ext_fit, sigma, ext_res, colour, markers[m % len(markers)])
+            handles = [Line2D([], [], color=OKABE_ITO[i % 8], marker="o", lw=1.2, ms=4, label=f"{f:g} pN") for i, f in enumerate(levels)]
+            if len(names) > 1:
+                handles += [Line2D([], [], color="0.3", marker=markers[i % len(markers)], ls="none", mfc="white" if i else "0.3",
+                                   ms=4, label=name) for i, name in enumerate(names)]
+            ax.legend(handles=handles, fontsize=7, ncols=2, title="force, molecule", title_fontsize=7)
+            ax.set_ylabel("extension (nm)")
+            ax.set_title("hat curves (turns-controlled points)")
+            rax.set_xlabel("turns (positive = overwound)")
+        else:
+            idx = np.flatnonzero(measured)
+            tq = np.asarray(data.measured_torque, dtype=float)
+            tq_sigma = np.asarray(data.measured_torque_sigma, dtype=float)
+            tq_fit = np.asarray(fit.predicted["torque"], dtype=float)
+            res = np.full(n, np.nan)
+            signed = _signed_residuals(fit, tq[idx], tq_fit[idx], n, idx.size)
+            res[idx] = (tq[idx] - tq_fit[idx]) / tq_sigma[idx] if signed is None else signed
+            x = np.where(by_torque, np.nan, turns)
+            rounded = np.array([float(f"{f:.4g}") for f in force])
+            for g, ((m, f), members) in enumerate(_groups(molecule[idx], rounded[idx])):
+                curve(ax, rax, idx[members], x, tq, tq_fit, tq_sigma, res, OKABE_ITO[g % 8], "o", f"{names[m]}, {f:g} pN")
+            ax.set_ylabel("torque (pN nm)")
+            ax.set_title("measured torque")
+            rax.set_xlabel("turns (positive = overwound)")
+            ax.legend(fontsize=7, title="molecule, force", title_fontsize=7)
+        rax.set_ylabel(residual_label, fontsize=8)
+    chi2 = float(getattr(fit, "chi2_reduced", np.nan))
+    molecules = f"{len(names)} molecule{'s' if len(names) != 1 else ''}"
+    fig.suptitle(f"tweezer fit: {n} points of {molecules}, reduced $\\chi^2$ = {chi2:.3g}")
+    return _finish(fig, path)

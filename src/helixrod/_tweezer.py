@@ -282,33 +282,35 @@ def response_point(rod, ell, rise, force, control, torque_controlled, persistenc
         buckles, safe_sqrt(2 * jnp.maximum(stretch_energy, 0.0) / jnp.where(buckles, softer, 1.0)), NO_BUCKLING
     )
 
-    def extended_rotation(torque):
-        bulk, _ = _bulk(rod, ell, F, torque)
-        return bulk.rotation - rotation0 + rise * torque * series
-
-    # Rotation of the extended phase at the buckling torque (sign of the control).
+    # Rotation per base pair of the extended phase at the buckling torque, to the same
+    # (second) order as the coexistence condition, and of the plectonemic phase.
     sign = jnp.where(control < 0, -1.0, 1.0)
     plateau = sign * jnp.where(buckles, buckling, 0.0)
-    r_s = jnp.where(buckles, jnp.abs(extended_rotation(plateau)), NO_BUCKLING)
+    r_s = jnp.where(buckles, rise * buckling / C_eff, NO_BUCKLING)
     r_p = jnp.where(buckles, rise * buckling / plectoneme_modulus, 2 * NO_BUCKLING)
 
-    # The extended phase's torque: given, or by chord steps on the rotation (slope rise/C_eff).
+    # The extended phase's torque: given, or by chord steps on its rotation (slope rise/C_eff,
+    # converging like the rod's nonlinearity, a few % per step); the rod's helix is solved
+    # once per step and the last solve is the answer (one trace of the solver for both).
     r = jnp.abs(control)
     target = jnp.minimum(r, r_s) * sign
-
-    def chord(_, torque):
-        return torque + (target - extended_rotation(torque)) * C_eff / rise
-
-    turned = jax.lax.fori_loop(0, _CHORD_STEPS, chord, target * C_eff / rise)
-    turned = jnp.where(r >= r_s, plateau, turned)
     beyond_plateau = torque_controlled & (jnp.abs(control) >= buckling)
-    torque_extended = jnp.where(torque_controlled, jnp.where(beyond_plateau, plateau, control), turned)
+    held = jnp.where(beyond_plateau, plateau, control)
 
-    bulk, _ = _bulk(rod, ell, F, torque_extended)
-    intrinsic = bulk.extension
+    def chord(_, state):
+        torque = state[0]
+        bulk, _ = _bulk(rod, ell, F, torque)
+        rotation = bulk.rotation - rotation0 + rise * torque * series
+        step = torque + (target - rotation) * C_eff / rise
+        return jnp.where(torque_controlled, held, step), torque, bulk.extension, rotation, bulk.result
+
+    start = jnp.where(torque_controlled, held, target * C_eff / rise)
+    initial = (start, start, jnp.zeros((), dtype), jnp.zeros((), dtype), result0)
+    _, torque_extended, intrinsic, rotation_extended, result_extended = jax.lax.fori_loop(
+        0, _CHORD_STEPS, chord, initial
+    )
     bending = -rise * (1 - z)
     twist = rise * 0.5 * torque_extended**2 * series_slope
-    rotation_extended = bulk.rotation - rotation0 + rise * torque_extended * series
 
     # Phases.
     coexisting = ~torque_controlled & (r > r_s) & (r < r_p)
@@ -317,7 +319,9 @@ def response_point(rod, ell, rise, force, control, torque_controlled, persistenc
     fraction = jnp.where(plectonemic, 0.0, fraction)
     phase = jnp.where(plectonemic, 2, jnp.where(coexisting, 1, 0))
     torque = jnp.where(
-        torque_controlled, control, jnp.where(plectonemic, sign * plectoneme_modulus * r / rise, torque_extended)
+        torque_controlled,
+        control,
+        jnp.where(plectonemic, sign * plectoneme_modulus * r / rise, jnp.where(coexisting, plateau, torque_extended)),
     )
     rotation = jnp.where(
         torque_controlled,
@@ -328,11 +332,10 @@ def response_point(rod, ell, rise, force, control, torque_controlled, persistenc
     extension = parts[0] + parts[1] + parts[2]
 
     twisted = control != 0  # a torque acts (turns or a torque imposed)
-    result = RESULTS.where(bulk.result == RESULTS.successful, result0, bulk.result)
+    result = RESULTS.where(result_extended == RESULTS.successful, result0, result_extended)
     result = RESULTS.where(twisted & (c > MAX_TWIST_CORRECTION), RESULTS.outside_model_range, result)
     result = RESULTS.where(good_input & jnp.isfinite(extension), result, RESULTS.invalid_input)
     return extension, rotation, torque, phase, fraction, parts, (C0, C_eff, buckling), result
-
 
 
 @eqx.filter_jit
@@ -438,3 +441,76 @@ def tweezer_response(
         result=jax.tree.map(shaped, result),
     )
     return raise_if_failed(response, response.result, "tweezer_response") if throw else response
+
+
+class TweezerModuli(eqx.Module):
+    """The moduli of the molecule at each `force` (pN), in the single-molecule
+    literature's terms (`tweezer_moduli`): the rod's own `stretch_modulus` S (pN),
+    `twist_modulus` C (pN nm^2) and `twist_stretch_coupling` g (pN nm) of its helix under
+    the force ($\\delta F = S\\varepsilon + g\\omega$, $\\delta M = g\\varepsilon + C\\omega$ per unit
+    axial length, as `effective_moduli`; g < 0: overwinding under tension), the twist
+    modulus at constant force `twist_modulus_at_constant_force` $C - g^2/S$ and the
+    Moroz-Nelson `effective_twist_modulus` with the bending fluctuations of
+    `persistence_length` (these two per unit contour length $L_0$, as the tweezer response
+    counts twist: $(C - g^2/S)\\,h_0/h$), and the `buckling_torque` (pN nm) of Marko's
+    model."""
+
+    force: Float[Array, " k"]
+    stretch_modulus: Float[Array, " k"]
+    twist_modulus: Float[Array, " k"]
+    twist_stretch_coupling: Float[Array, " k"]
+    twist_modulus_at_constant_force: Float[Array, " k"]
+    effective_twist_modulus: Float[Array, " k"]
+    buckling_torque: Float[Array, " k"]
+
+
+def tweezer_moduli(
+    rod,
+    force: ArrayLike,
+    *,
+    persistence_length: ArrayLike = 50.0,
+    plectoneme_twist_persistence: ArrayLike = PLECTONEME_TWIST_PERSISTENCE,
+    temperature: float = ROOM_TEMPERATURE,
+    length_per_bp: float | None = None,
+) -> TweezerModuli:
+    """S, C, g of the rod's helix along the force range, the twist modulus at constant
+    force, its Moroz-Nelson softening and the buckling torque (`TweezerModuli`), at each of
+    `force` (pN, a 1-D array or a scalar).  The rod's g(F), C(F), S(F) follow from its
+    stiffnesses through the nonlinear helix (beside twistable-WLC fits' phenomenological
+    g0 + g1 F).  The twist softening and the buckling torque are NaN below the range of the
+    Moroz-Nelson theory (its correction above 1/2).  Differentiable in the rod and the
+    parameters: with a tweezer fit, error bars come from `StiffnessFit.propagate`."""
+    check_one_rod(rod, "tweezer_moduli")
+    dtype = float_dtype()
+    force = jnp.atleast_1d(jnp.asarray(force, dtype))
+    if force.ndim != 1:
+        raise ValueError(f"tweezer_moduli: force must be a scalar or 1-D, got shape {force.shape}")
+    if is_concrete(force) and not np.all(np.asarray(force) > 0):
+        raise ValueError("tweezer_moduli: force must be finite and > 0 pN")
+    ell = jnp.asarray(helix_from_bdna()[2] if length_per_bp is None else length_per_bp, dtype)
+    uhat = jnp.asarray(rod.uhat, dtype)
+    rise = ell * uhat[2] / jnp.linalg.norm(uhat)
+    kT = thermal_energy(temperature)
+    A = jnp.asarray(persistence_length, dtype)
+    P = jnp.asarray(plectoneme_twist_persistence, dtype)
+
+    def at(F):
+        def observables(wrench):
+            bulk, _ = _bulk(rod, ell, wrench[0], wrench[1])
+            return jnp.stack([bulk.extension, bulk.rotation])
+
+        wrench = jnp.stack([F, jnp.zeros((), dtype)])
+        height = observables(wrench)[0]
+        compliance = jax.jacfwd(observables)(wrench)  # d(h, Theta)/d(F, M), per base pair
+        stiffness = height * jnp.linalg.inv(compliance)  # per unit axial length (effective_moduli)
+        S, C, g = stiffness[0, 0], stiffness[1, 1], 0.5 * (stiffness[0, 1] + stiffness[1, 0])
+        _, _, _, _, _, _, (C0, C_eff, buckling), _ = response_point(
+            rod, ell, rise, F, jnp.zeros((), dtype), jnp.asarray(True), A, P, kT
+        )
+        in_range = C0 / (4 * A * kT) * jnp.sqrt(kT / (A * F)) <= MAX_TWIST_CORRECTION
+        C_eff = jnp.where(in_range, C_eff, jnp.nan)
+        buckling = jnp.where(in_range, jnp.where(buckling >= NO_BUCKLING, jnp.inf, buckling), jnp.nan)
+        return S, C, g, C0, C_eff, buckling
+
+    S, C, g, C0, C_eff, buckling = jax.vmap(at)(force)
+    return TweezerModuli(force, S, C, g, C0, C_eff, buckling)

@@ -27,6 +27,7 @@ and `TweezerData` holds what instruments record, fitted with `helixrod.fit_stiff
 """
 
 from ._datasets import TweezerExample as TweezerExample, load_tweezer_example as load_tweezer_example
+from ._datasets import TweezerCurvesExample as TweezerCurvesExample, load_tweezer_curves_example as load_tweezer_curves_example
 from ._dna import (
     BOLTZMANN_CONSTANT as BOLTZMANN_CONSTANT,
     NANOMETRE as NANOMETRE,
@@ -52,8 +53,10 @@ from ._spring import effective_moduli as effective_moduli
 from ._tweezer import (
     PHASES as PHASES,
     PLECTONEME_TWIST_PERSISTENCE as PLECTONEME_TWIST_PERSISTENCE,
+    TweezerModuli as TweezerModuli,
     TweezerResponse as TweezerResponse,
     moroz_nelson_twist_modulus as moroz_nelson_twist_modulus,
+    tweezer_moduli as tweezer_moduli,
     tweezer_response as tweezer_response,
     wlc_extension as wlc_extension,
     wlc_force as wlc_force,

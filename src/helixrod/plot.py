@@ -15,4 +15,5 @@ from ._plot import (
     plot_sensitivity as plot_sensitivity,
     plot_stable_wrench as plot_stable_wrench,
     plot_sweep_summary as plot_sweep_summary,
+    plot_tweezer_fit as plot_tweezer_fit,
 )

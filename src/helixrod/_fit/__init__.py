@@ -19,6 +19,7 @@ from ._models import (
     forward_model as forward_model,
 )
 from ._pipeline import SOLVERS as SOLVERS, StiffnessFit as StiffnessFit, fit_stiffness as fit_stiffness
+from ._profile import ProfileLikelihood as ProfileLikelihood, profile_likelihood as profile_likelihood
 from ._report import ErrorAnalysis as ErrorAnalysis, Identifiability as Identifiability, error_analysis as error_analysis
 from ._tweezer_data import TweezerData as TweezerData
 from ._tweezer_model import TweezerModel as TweezerModel

@@ -110,6 +110,65 @@ class StiffnessFit(eqx.Module):
             return "converged"
         return f"best start did not report convergence: {message(self.result)} ({self.method}, {self.n_steps} steps)"
 
+    @property
+    def n_residuals(self) -> int:
+        """The number of normalised residuals (observations) $m$."""
+        return int(self.residuals.shape[0])
+
+    @property
+    def log_likelihood(self) -> float:
+        """The Gaussian log-likelihood at the fit, up to the constant $-\\sum\\log(\\sqrt{2\\pi}
+        \\sigma_i)$: $-\\tfrac12\\sum r^2$ with trusted sigmas (`absolute_sigma=True`); with
+        sigmas known only up to a common scale, maximised over it: $-\\tfrac m2
+        \\log(\\sum r^2/m) - \\tfrac m2$."""
+        chi2 = 2 * float(self.cost)
+        if self.absolute_sigma:
+            return -0.5 * chi2
+        m = self.n_residuals
+        return -0.5 * m * np.log(chi2 / m) - 0.5 * m
+
+    @property
+    def n_parameters(self) -> int:
+        """Free parameters counted by the information criteria (plus the common sigma scale
+        when `absolute_sigma=False`)."""
+        return len(self.names) + (0 if self.absolute_sigma else 1)
+
+    @property
+    def aic(self) -> float:
+        """Akaike's information criterion $2k - 2\\log L$ (Akaike 1974); compare fits of the
+        same data (same sigmas): lower is better."""
+        return 2 * self.n_parameters - 2 * self.log_likelihood
+
+    @property
+    def bic(self) -> float:
+        """The Bayesian (Schwarz 1978) information criterion $k\\log m - 2\\log L$."""
+        return self.n_parameters * float(np.log(self.n_residuals)) - 2 * self.log_likelihood
+
+    def propagate(self, function):
+        """Values and standard errors of derived quantities: `function(rod, params)` (the
+        fitted `Rod` and the mapping of every free parameter's value, traced) returns a
+        pytree of arrays; returns `(values, stderr)` of the same structure, the errors by
+        first-order propagation of `covariance` through `jax.jacfwd` (the delta method).
+        E.g. a tweezer fit's S, C, g along the force range:
+        `fit.propagate(lambda rod, p: dna.tweezer_moduli(rod, forces,
+        persistence_length=p["persistence_length"]))`."""
+        if self.problem is None:
+            raise ValueError("propagate needs a fit from fit_stiffness (not fit_stiffness_linear)")
+        param = self.problem.parameterisation
+        q = jnp.asarray([float(self.params[n]) for n in self.names])
+        fixed_extra = {e.name: v for e, v in zip(param.extra, param.extra_values) if e.name not in param.extra_free}
+
+        def derived(qq):
+            values = dict(zip(self.names, [qq[i] for i in range(len(self.names))]))
+            return function(param.rod(qq), {**fixed_extra, **values})
+
+        @jax.jit
+        def propagated(qq, cov):
+            values, jacobian = derived(qq), jax.jacfwd(derived)(qq)
+            return values, jax.tree.map(lambda j: jnp.sqrt(jnp.einsum("...i,ij,...j->...", j, cov, j)), jacobian)
+
+        return propagated(q, jnp.asarray(self.covariance))
+
     def interval(self, level: float = 0.95) -> dict[str, tuple[float, float]]:
         """Normal-approximation confidence intervals value ± z stderr, by name."""
         z = NormalDist().inv_cdf(0.5 + level / 2)
@@ -127,6 +186,8 @@ class StiffnessFit(eqx.Module):
             "correlation": np.asarray(self.correlation).tolist(),
             "cost": float(self.cost),
             "chi2_reduced": float(self.chi2_reduced),
+            "aic": float(self.aic),
+            "bic": float(self.bic),
             "absolute_sigma": self.absolute_sigma,
             "success": self.ok,
             "message": self.message,

@@ -2,8 +2,10 @@
 DNA molecules at their force and turns or torque, through the rod and its thermal
 fluctuations (`helixrod._tweezer`).
 
-Residuals: the measured extensions minus the predictions over their sigmas, then the
-measured torques (where recorded) likewise.  Besides the rod, the model has its own
+Residuals: the predicted extensions minus the measured ones over their sigmas, then the
+measured torques (where recorded) likewise; `predicted` holds the predictions, their
+`phase`, `ok` per point and the `extension_sigma` used (the effective one with errors in
+variables).  Besides the rod, the model has its own
 parameters: `persistence_length` (nm, free), `plectoneme_twist_persistence` (nm; free when
 some point is turned, else fixed at its default) and one bead-height `offset_<molecule>`
 (nm) per molecule added to its extensions (fixed at 0 unless the model option
@@ -95,7 +97,10 @@ class TweezerModel(AbstractForwardModel):
             sigma = self._effective_sigma(rod, extra)
         r_extension = (extension - self.extension) / sigma
         r_torque = (torque[self.torque_points] - self.measured_torque) / self.measured_torque_sigma
-        predicted = {"extension": extension, "torque": torque, "phase": phase, "ok": result == RESULTS.successful}
+        predicted = {
+            "extension": extension, "torque": torque, "phase": phase, "ok": result == RESULTS.successful,
+            "extension_sigma": sigma,
+        }
         return jnp.concatenate([r_extension, r_torque]), predicted
 
     def _effective_sigma(self, rod, extra):

@@ -1,11 +1,11 @@
-"""Command line of helixrod: ``helixrod demo | sweep | fit | force-extension``.
+"""Command line of helixrod: ``helixrod demo | sweep | fit | force-extension | tweezer-fit``.
 
 `app` is the typer application (the ``helixrod`` entry point, ``python -m helixrod.cli``).
 Its callback turns on float64 (``jax_enable_x64``) once, before any command runs: every
 command computes and prints in float64.  One private module per command (`_demo`, `_sweep`,
-`_fit`, `_force_extension`); `_numbers` parses every number spec (comma-separated lists and
-``start:stop:num`` grid axes), `_report` prints the tables of a fit; figures are drawn only
-by the plotting module (`helixrod.plot`).
+`_fit`, `_force_extension`, `_tweezer_fit`); `_numbers` parses every number spec
+(comma-separated lists and ``start:stop:num`` grid axes), `_report` prints the tables of a
+fit; figures are drawn only by the plotting module (`helixrod.plot`).
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from ._fit import example_data_path as example_data_path, fit as fit
 from ._force_extension import force_extension_command as force_extension_command
 from ._report import print_fit as print_fit
 from ._sweep import sweep_command as sweep_command
+from ._tweezer_fit import tweezer_fit_command as tweezer_fit_command
 
 app = typer.Typer(add_completion=False, help="helixrod: elastic Kirchhoff rods and helices in JAX.")
 
@@ -33,3 +34,4 @@ app.command()(demo)
 app.command(name="sweep")(sweep_command)
 app.command()(fit)
 app.command(name="force-extension")(force_extension_command)
+app.command(name="tweezer-fit")(tweezer_fit_command)

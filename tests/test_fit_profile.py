@@ -1,0 +1,72 @@
+"""Profile likelihoods and information criteria of a fit (`helixrod._fit._profile`,
+`StiffnessFit.aic`/`bic`): the profile at a held value equals an independent refit with
+that value fixed; near a well-determined minimum the profile interval is the Wald interval;
+AIC and BIC from their definitions."""
+
+import jax
+import numpy as np
+import pytest
+from helpers import fit_grid, random_rods
+
+import helixrod as hr
+
+
+@pytest.fixture(scope="module")
+def noisy_fit():
+    rng = np.random.default_rng(7)
+    kappa, tau = fit_grid(rng)
+    rod = random_rods(rng, 1)[0]
+    data = hr.synthetic_helix_data(rod, kappa, tau, 1e-3, jax.random.key(3))
+    return data, rod, hr.fit_stiffness(data, uhat=rod.uhat)
+
+
+def test_profile_against_independent_refits_and_the_wald_interval(noisy_fit):
+    data, rod, fit = noisy_fit
+    assert fit.ok
+    profile = hr.profile_likelihood(fit, "K2", points=9)
+    assert bool(np.all(profile.result == hr.RESULTS.successful))
+    # Each point of the profile is a fit with K2 held there: compare one with fit_stiffness.
+    held = float(profile.values[2])
+    fixed = hr.fit_stiffness(data, uhat=rod.uhat, fix={"K2": held}, init=fit.rod.__class__(
+        fit.rod.K1, held, fit.rod.K3, fit.rod.K13, fit.rod.K23, fit.rod.uhat), n_starts=1)
+    np.testing.assert_allclose(profile.delta_chi2[2], 2 * (fixed.cost - fit.cost), rtol=1e-6)
+    # Near a well-determined minimum the profile is the quadratic of the covariance.
+    lo, hi = profile.interval
+    wald = fit.interval(0.95)["K2"]
+    width = wald[1] - wald[0]
+    assert abs(lo - wald[0]) < 0.05 * width and abs(hi - wald[1]) < 0.05 * width
+    np.testing.assert_allclose(profile.threshold, 3.841458820694124, rtol=1e-12)
+
+
+def test_information_criteria_from_their_definitions(noisy_fit):
+    _, _, fit = noisy_fit
+    k, m, chi2 = len(fit.names), fit.residuals.shape[0], float(np.sum(np.asarray(fit.residuals) ** 2))
+    np.testing.assert_allclose(fit.aic, chi2 + 2 * k, rtol=1e-12)
+    np.testing.assert_allclose(fit.bic, chi2 + k * np.log(m), rtol=1e-12)
+    relative = fit.__class__.__new__(fit.__class__)
+    for field in fit.__dataclass_fields__:
+        object.__setattr__(relative, field, getattr(fit, field))
+    object.__setattr__(relative, "absolute_sigma", False)
+    np.testing.assert_allclose(relative.aic, m * np.log(chi2 / m) + m + 2 * (k + 1), rtol=1e-12)
+    d = fit.to_dict()
+    assert d["aic"] == fit.aic and d["bic"] == fit.bic
+
+
+def test_bad_profile_requests(noisy_fit):
+    _, _, fit = noisy_fit
+    with pytest.raises(ValueError, match="is not a free parameter"):
+        hr.profile_likelihood(fit, "uhat1")
+    with pytest.raises(ValueError, match="level must be in"):
+        hr.profile_likelihood(fit, "K1", level=1.5)
+    with pytest.raises(ValueError, match="at least two finite"):
+        hr.profile_likelihood(fit, "K1", values=[1.0])
+
+
+def test_propagate_is_the_delta_method(noisy_fit):
+    _, _, fit = noisy_fit
+    values, stderr = fit.propagate(lambda rod, p: {"sum": rod.K1 + rod.K2, "K3": p["K3"]})
+    i, j = fit.names.index("K1"), fit.names.index("K2")
+    cov = np.asarray(fit.covariance)
+    np.testing.assert_allclose(values["sum"], float(fit.params["K1"] + fit.params["K2"]), rtol=1e-12)
+    np.testing.assert_allclose(stderr["sum"], np.sqrt(cov[i, i] + cov[j, j] + 2 * cov[i, j]), rtol=1e-10)
+    np.testing.assert_allclose(stderr["K3"], fit.stderr["K3"], rtol=1e-10)

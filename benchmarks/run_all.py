@@ -26,7 +26,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
-BENCHMARKS = ("equilibria", "sweep", "kirchhoff", "fit", "finite")
+BENCHMARKS = ("equilibria", "sweep", "kirchhoff", "fit", "finite", "tweezer")
 
 
 def run(name: str, quick: bool) -> float:
@@ -140,7 +140,46 @@ def rows_finite(r):
     return out
 
 
-EXTRACT = {"equilibria": rows_equilibria, "sweep": rows_sweep, "kirchhoff": rows_kirchhoff, "fit": rows_fit, "finite": rows_finite}
+def rows_tweezer(r):
+    out = []
+    g = r.get("global_fit")
+    if g:
+        z = g["z"]
+        rod_z = max(abs(v) for k, v in z.items() if not k.startswith("offset_"))
+        off_z = max((abs(v) for k, v in z.items() if k.startswith("offset_")), default=0.0)
+        out.append(_row("tweezer", f"global fit, {g['molecules']} molecules x {g['points_per_molecule']} points "
+                        f"(F-d + hats at 0.5/1/2 pN), {g['n_params']} parameters", "fit_stiffness LM (TweezerData)",
+                        max(g["rel_err"].values()), g["later_s"], g["compile_s"], "-", None, None,
+                        note=f"reduced chi2 {g['chi2_reduced']:.2f}; K2, K3, K23, persistence, plectoneme within "
+                        f"{rod_z:.1f} stderr of the truth, offsets within {off_z:.1f}; error: largest relative error of those five"))
+    for key, label in (("fd_single", "1 molecule"), ("fd_global", "global")):
+        part = r.get(key)
+        if not part:
+            continue
+        peers = part["pylake"] if key == "fd_single" else part["pylake"][:1]  # global: against Odijk at 10-30 pN only
+        for variant in ("helixrod", "helixrod_rod_free"):
+            h = part.get(variant)
+            if not h:
+                continue
+            case = (f"F-d curve at torque 0, {label}: {part['molecules']} x {part['n_points'] // part['molecules']} points; "
+                    f"helixrod free: {h['free']}")
+            for p in peers if variant == "helixrod" else peers[:1]:
+                note = (f"error: persistence length; chi2 (sigma 3 nm) at 10-30 pN: helixrod {h['chi2_odijk_range']:.0f}, "
+                        f"pylake {p['chi2_odijk_range']:.0f} ({h['n_points_odijk_range']} points); pylake over its own "
+                        f"{p['n_points']} points {p['chi2']:.0f}, helixrod over {h['n_points']} {h['chi2']:.0f} (truth "
+                        f"{part['chi2_truth']:.0f}); stretch modulus at zero torque {h['S_free']:.0f} vs {p['S_free']:.0f} pN "
+                        f"(truth {r['truth']['S_free']:.0f})")
+                if not h["ok"]:
+                    note += f"; helixrod not converged ({h['n_steps']} steps)"
+                if h.get("weak"):
+                    note += f"; {len(h['weak'])} weak direction(s) reported"
+                out.append(_row("tweezer", case, f"fit_stiffness, 0.1-40 pN, {h['n_params']} params", h["Lp_rel_err"],
+                                h["later_s"], h["compile_s"], f"pylake FdFit {p['model']}, {p['range']}, {p['n_params']} params",
+                                p["Lp_rel_err"], p["later_s"], note=note))
+    return out
+
+
+EXTRACT = {"equilibria": rows_equilibria, "sweep": rows_sweep, "kirchhoff": rows_kirchhoff, "fit": rows_fit, "finite": rows_finite, "tweezer": rows_tweezer}
 
 
 def _fmt(x, kind):

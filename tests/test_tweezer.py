@@ -13,7 +13,8 @@ from scipy.linalg import eigh_tridiagonal
 from scipy.optimize import brentq
 
 import helixrod as hr
-from helixrod import _tweezer as tw, dna
+from helixrod import _tweezer as tw
+from helixrod import dna
 
 ROD = dna.load_tweezer_example().rod
 KT = float(dna.kT())
@@ -38,7 +39,7 @@ def exact_wlc(f, lmax=600):
 
 def bouchiat_inverse(f):
     coefficients = (0, 0) + tw.BOUCHIAT_COEFFICIENTS
-    force = lambda z: 0.25 / (1 - z) ** 2 - 0.25 + z + sum(a * z**i for i, a in enumerate(coefficients))  # noqa: E731
+    force = lambda z: 0.25 / (1 - z) ** 2 - 0.25 + z + sum(a * z**i for i, a in enumerate(coefficients))
     return brentq(lambda z: force(z) - f, 0.0, 1 - 1e-12, xtol=1e-15)
 
 
@@ -215,3 +216,57 @@ def test_moduli_along_the_force_range():
     # The coupling weakens with force (the rod's nonlinearity), and the buckling torque grows.
     assert np.all(np.diff(np.asarray(moduli.twist_stretch_coupling)) > 0)
     assert np.all(np.diff(np.asarray(moduli.buckling_torque[1:])) > 0)
+
+
+def test_free_swivel_matches_pylake_twlc_with_constant_coupling():
+    # Gross et al.'s twistable WLC with g(F) = g0 (g1 = 0): the compliance C/(SC - g^2) is the
+    # rod's at zero torque, so in Odijk's range it is the same curve as the rod's.
+    twlc = pytest.importorskip("lumicks.pylake.fitting.detail.model_implementation").twlc_distance
+    S, C, g = (float(x) for x in dna.effective_moduli(ROD, ROD.uhat))
+    forces = np.array([10.0, 20.0, 30.0])
+    response = tw.tweezer_response(ROD, 8000, forces, torque=0.0, persistence_length=A)
+    peer = twlc(forces, A, 8000 * RISE, S, C, g, 0.0, 100.0, KT)
+    np.testing.assert_allclose(response.extension, peer, rtol=1e-3)
+
+
+def test_a_realistic_1_pN_measurement_is_a_pulling_force():
+    # A 5 kbp molecule measured at 1451 nm with the bead not turned: the thermal model reads
+    # it as a pull of about 1 pN (the uniform-helix model alone read F = -149 pN).
+    def extension(force):
+        return float(tw.tweezer_response(ROD, 5000, force, torque=0.0, persistence_length=A).extension) - 1451.0
+
+    force = brentq(extension, 0.2, 5.0, xtol=1e-10)
+    assert 0.8 < force < 1.2
+
+
+@pytest.mark.slow
+def test_tweezer_error_bars_are_calibrated():
+    # Parametric bootstrap (data redrawn around the fitted model with the data's sigmas,
+    # refitted in one vmapped call): the spread of the refits is the fit's standard error,
+    # and 95 % of the refits lie within its 95 % interval.
+    rng = np.random.default_rng(5)
+    forces = np.concatenate([np.geomspace(0.1, 30, 30), np.repeat([0.5, 1.5], 21)])
+    turns = np.concatenate([np.full(30, np.nan), np.tile(np.linspace(-25, 25, 21), 2)])
+    torque = np.where(np.isnan(turns), 0.0, np.nan)
+    exact = np.where(
+        np.isnan(turns),
+        np.asarray(tw.tweezer_response(ROD, 8000, forces, torque=0.0, persistence_length=48.0).extension),
+        np.asarray(tw.tweezer_response(ROD, 8000, forces, turns=np.nan_to_num(turns), persistence_length=48.0).extension),
+    )
+    sigma = 4.0
+    data = dna.TweezerData.from_arrays(
+        forces, exact + sigma * rng.normal(size=forces.size), extension_sigma=sigma, turns=turns, torque=torque, n_bp=8000
+    )
+    fixed = {"K1": float(ROD.K1), "K13": 0.0, "K23": float(ROD.K23)}
+    fit = hr.fit_stiffness(data, uhat=ROD.uhat, init=ROD, fix=fixed)
+    assert fit.ok
+    boot = hr.bootstrap(data, fit, 200, jax.random.key(2), kind="parametric")
+    assert float(jnp.mean(boot.ok)) > 0.95
+    for name in fit.names:
+        samples = np.asarray(boot.samples[name])
+        samples = samples[np.isfinite(samples)]
+        spread = np.std(samples, ddof=1)
+        assert 0.75 < spread / float(fit.stderr[name]) < 1.3, name
+        centre = float(fit.params[name])
+        covered = np.mean(np.abs(samples - centre) <= 1.96 * float(fit.stderr[name]))
+        assert 0.9 < covered < 0.99, (name, covered)

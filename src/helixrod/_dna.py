@@ -172,7 +172,9 @@ def helix_from_tweezer(
 ) -> tuple[Array, Array]:
     """$(\\kappa, \\tau)$ (1/nm) of the backbone helix from the total extension (nm) and total
     rotation (rad) of a molecule of `n_bp` base pairs (`n_bp = 1`: per-base-pair values).
-    Inverse of `tweezer_from_helix`."""
+    Inverse of `tweezer_from_helix`.  The backbone helix alone, without thermal
+    fluctuations: a measured extension is shortened by them (~15 % at 1 pN), so fit measured
+    tweezer curves with `TweezerData` and `tweezer_response` instead."""
     return helix_from_observables(extension, rotation, jnp.asarray(n_bp) * _length_per_bp(length_per_bp))
 
 

@@ -102,6 +102,33 @@ def increasing_within(s: ArrayLike, length: ArrayLike, name: str, owner: str, sl
     return s
 
 
+def solve_small(A: ArrayLike, b: ArrayLike) -> Array:
+    """$A^{-1} b$ for one small square system (n <= ~8; batch with `vmap`) by Gaussian
+    elimination with partial pivoting, unrolled in jnp operations.
+
+    Used for the many tiny per-point systems inside vmapped models instead of
+    `jnp.linalg.solve`, whose LAPACK calls (getrf/trsm through XLA's FFI) deadlocked in
+    jaxlib 0.10.2 on 2 CPU cores when a batch of them ran under the concurrency-optimised
+    scheduler (seen in a 2000-point tweezer fit); pure arithmetic also fuses with its
+    neighbours.  Differentiable in both modes; a singular matrix gives inf/NaN as
+    `jnp.linalg.solve` would."""
+    A = jnp.asarray(A)
+    b = jnp.asarray(b)
+    n = A.shape[-1]
+    M = jnp.concatenate([A, b[:, None]], axis=1)
+    rows = jnp.arange(n)
+    for k in range(n):
+        pivot = k + jnp.argmax(jnp.abs(M[k:, k]))
+        order = jnp.where(rows == k, pivot, jnp.where(rows == pivot, k, rows))
+        M = M[order]
+        factors = jnp.where(rows > k, M[:, k] / M[k, k], 0.0)
+        M = M - factors[:, None] * M[k][None, :]
+    x = jnp.zeros(n, M.dtype)
+    for k in reversed(range(n)):
+        x = x.at[k].set((M[k, n] - jnp.dot(M[k, :n], x)) / M[k, k])
+    return x
+
+
 def newton_iterations(residual, x0, steps: int, project=None):
     """`steps` plain Newton steps $x \\leftarrow x - J(x)^{-1} f(x)$ on a small square system
     (a non-finite step is skipped), each optionally followed by `project(new, old)`; no
@@ -109,7 +136,7 @@ def newton_iterations(residual, x0, steps: int, project=None):
     seeds that a caller checks afterwards)."""
 
     def step(_, x):
-        dx = jnp.linalg.solve(jax.jacfwd(residual)(x), residual(x))
+        dx = solve_small(jax.jacfwd(residual)(x), residual(x))
         new = x - jnp.where(jnp.all(jnp.isfinite(dx)), dx, 0.0)
         return new if project is None else project(new, x)
 

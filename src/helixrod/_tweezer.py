@@ -67,7 +67,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._bvp import AXIAL_OBSERVABLES, bulk_helix_at
-from ._dna import ROOM_TEMPERATURE, helix_from_bdna, kT as thermal_energy
+from ._dna import ROOM_TEMPERATURE, helix_from_bdna
+from ._dna import kT as thermal_energy
 from ._misc import float_dtype, is_concrete, safe_sqrt
 from ._rod import check_one_rod
 from ._status import RESULTS, raise_if_failed
@@ -346,7 +347,7 @@ def _responses(rod, ell, rise, force, control, torque_controlled, n_bp, persiste
             rod, ell, rise, F, per_bp, by_torque, A, P, kT
         )
         good = result == RESULTS.successful
-        masked = lambda x: jnp.where(good, x, jnp.nan)  # noqa: E731
+        masked = lambda x: jnp.where(good, x, jnp.nan)
         return (
             masked(ext * N), masked(rot * N), masked(torque), phase, masked(fraction),
             tuple(masked(p * N) for p in parts),
@@ -414,8 +415,7 @@ def tweezer_response(
                 raise ValueError(f"tweezer_response: {name} must be {rule} (bad at flat indices {np.flatnonzero(bad)[:5].tolist()})")
     if not (math.isfinite(temperature) and temperature > 0):
         raise ValueError(f"tweezer_response: temperature must be finite and > 0 kelvin, got {temperature}")
-    kappa0, tau0, ell_bdna = helix_from_bdna()
-    ell = jnp.asarray(ell_bdna if length_per_bp is None else length_per_bp, dtype)
+    ell = jnp.asarray(helix_from_bdna()[2] if length_per_bp is None else length_per_bp, dtype)
     uhat = jnp.asarray(rod.uhat, dtype)
     rise = ell * uhat[2] / jnp.linalg.norm(uhat)
     if x.size == 0:
@@ -425,7 +425,7 @@ def tweezer_response(
     by_torque_mask = jnp.full(x.shape, by_torque)
     ext, rot, tq, phase, fraction, parts, moduli, result = _responses(rod, ell, rise, F, x, by_torque_mask, n, A, P, kT)
     turns_out = rot / (2 * jnp.pi) if by_torque else x
-    shaped = lambda a: a.reshape(shape)  # noqa: E731
+    shaped = lambda a: a.reshape(shape)
     response = TweezerResponse(
         extension=shaped(ext),
         torque=shaped(tq),

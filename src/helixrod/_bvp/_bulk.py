@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
-from .._misc import finite_scalar, float_dtype, newton_iterations, no_gradient
+from .._misc import finite_scalar, float_dtype, newton_iterations, no_gradient, solve_small
 from .._rod import check_one_rod
 from .._status import RESULTS, promote, raise_if_failed
 from ._ends import AXIAL_OBSERVABLES, axial_controls
@@ -107,10 +107,10 @@ def bulk_helix_at(
         z = newton_iterations(lambda z: _bulk_residual(z, frozen), z0, max_steps)
         result = RESULTS.successful
         if newton_derivatives:
-            z = jax.lax.stop_gradient(z)
-            for _ in range(2):
-                step = jnp.linalg.solve(jax.jacfwd(_bulk_residual)(z, args), _bulk_residual(z, args))
-                z = z - step
+            def newton_step(_, z):
+                return z - solve_small(jax.jacfwd(_bulk_residual)(z, args), _bulk_residual(z, args))
+
+            z = jax.lax.fori_loop(0, 2, newton_step, jax.lax.stop_gradient(z))  # one trace of the step
     else:
         sol = optx.root_find(
             _bulk_residual, optx.Newton(rtol=1e-12, atol=1e-12), z0, args, max_steps=max_steps, throw=False

@@ -156,10 +156,6 @@ class Parameterisation(eqx.Module):
             out.append(jnp.asarray(e.scale * jnp.exp(jnp.clip(w, -40.0, 40.0)) if e.positive else e.scale * w, float_dtype()))
         return out
 
-    def rod_at(self, z) -> Rod:
-        """The rod at internal coordinates `z`."""
-        return self.rod(self.physical(z))
-
     def internal(self, p_full, extra_full=None) -> np.ndarray:
         """Inverse of `physical` from a full physical vector of the rod and, if the model has
         parameters, every model parameter (NumPy; for initial values; default: their starts)."""

@@ -91,3 +91,11 @@ def test_bad_options_give_documented_errors():
         hr.fit_stiffness(data, fix={"K4": 1.0})
     with pytest.raises(ValueError, match="positive definite"):
         hr.fit_stiffness(data, init={"K1": 1.0, "K2": 1.0, "K3": 0.01, "K13": 1.0})
+
+
+def test_cli_fit_bad_fix_is_a_usage_error(tmp_path):
+    runner = CliRunner()
+    for entry, message in (("K13=abc", "'abc' is not a number"), ("K13", "is not NAME=VALUE"), ("K13=0,K13=1", "names K13 twice")):
+        result = runner.invoke(app, ["fit", str(example_data_path()), "--fix", entry])
+        assert result.exit_code == 2, result.output
+        assert message in " ".join(result.output.split())

@@ -11,7 +11,7 @@ from rich.console import Console
 
 from .. import HelixData, fit_stiffness
 from ..plot import plot_fit
-from ._numbers import numbers
+from ._numbers import assignments, numbers
 from ._report import print_fit
 
 
@@ -35,12 +35,7 @@ def fit(
 ) -> None:
     """Fit K1, K2, K3, K13, K23 (and uhat) to measured helices (the inverse spring problem)."""
     console = Console()
-    fixed = {}
-    for item in fix:
-        name, _, value = item.partition("=")
-        if not value:
-            raise typer.BadParameter(f"--fix needs NAME=VALUE, got {item!r}")
-        fixed[name.strip()] = float(value)
+    fixed = assignments(fix, "--fix")
     try:
         observations = HelixData.from_csv(data)
         result = fit_stiffness(

@@ -1,6 +1,7 @@
 """The one parser of number specs on the command line.
 
-Two kinds of spec: comma-separated numbers, a required count of them (`numbers`: ``--rod
+Three kinds of spec: named values ``NAME=VALUE[,NAME=VALUE...]`` (`assignments`: ``--fix
+K13=0,K23=0``), comma-separated numbers, a required count of them (`numbers`: ``--rod
 1,1.5,0.8[,0.5,0.5]`` takes 3 or 5, ``--uhat u1,u2,u3`` takes 3), and a grid axis
 ``start:stop:num`` (`grid`: ``--kappa 0:3:1000``, ``--forces 0:0.05:21``), ``num`` points
 from ``start`` to ``stop`` inclusive.  A bad spec raises `typer.BadParameter` naming the
@@ -37,3 +38,25 @@ def grid(text: str, name: str) -> np.ndarray:
     if len(parts) != 3 or num < 1:
         raise typer.BadParameter(f"{name} must be start:stop:num with num >= 1, got {text!r}")
     return np.linspace(start, stop, num)
+
+
+def assignments(entries, name: str) -> dict[str, float]:
+    """The ``NAME=VALUE`` entries of `entries` (strings, each possibly comma-separated; given
+    to option `name`, e.g. ``"--fix"``) as a mapping; `typer.BadParameter` naming the bad
+    entry (not NAME=VALUE, a value that is not a finite number, a name given twice)."""
+    values: dict[str, float] = {}
+    for text in entries:
+        for entry in text.split(","):
+            key, sep, value = (part.strip() for part in entry.partition("="))
+            if not sep or not key:
+                raise typer.BadParameter(f"{name} entry {entry.strip()!r} is not NAME=VALUE (e.g. {name} K13=0)")
+            try:
+                number = float(value)
+            except ValueError:
+                raise typer.BadParameter(f"{name} entry {entry.strip()!r}: {value!r} is not a number") from None
+            if not np.isfinite(number):
+                raise typer.BadParameter(f"{name} entry {entry.strip()!r}: the value must be finite")
+            if key in values:
+                raise typer.BadParameter(f"{name} names {key} twice")
+            values[key] = number
+    return values

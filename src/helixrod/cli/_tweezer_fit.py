@@ -16,6 +16,7 @@ from rich.table import Table
 
 from .. import dna, fit_stiffness
 from ..plot import plot_tweezer_fit
+from ._numbers import assignments
 
 _UNITS = {"K": "pN nm^2", "uhat": "1/nm", "persistence_length": "nm", "plectoneme_twist_persistence": "nm", "offset_": "nm"}
 
@@ -44,21 +45,10 @@ def parse_fix(text: str | None) -> dict[str, float]:
         return default_fix()
     if text.strip().lower() == "none":
         return {}
-    fixed = {}
-    for entry in text.split(","):
-        name, sep, value = (part.strip() for part in entry.partition("="))
-        if not sep or not name:
-            raise FixError(f"--fix entry {entry.strip()!r} is not NAME=VALUE (e.g. --fix K1=1327.3,K13=0)")
-        try:
-            number = float(value)
-        except ValueError:
-            raise FixError(f"--fix entry {entry.strip()!r}: {value!r} is not a number") from None
-        if not math.isfinite(number):
-            raise FixError(f"--fix entry {entry.strip()!r}: the value must be finite")
-        if name in fixed:
-            raise FixError(f"--fix names {name} twice")
-        fixed[name] = number
-    return fixed
+    try:
+        return assignments([text], "--fix")
+    except typer.BadParameter as error:
+        raise FixError(error.message) from None
 
 
 def fitted_moduli(fit) -> dict[str, tuple[float, float]]:

@@ -229,3 +229,13 @@ def test_cpu_chunks_equal_one_pass(rng, monkeypatch):
         if r is rod:
             for a, b in zip(jax.tree.leaves(grad_chunked), jax.tree.leaves(grad_whole)):
                 np.testing.assert_allclose(a, b, rtol=1e-11)
+
+
+def test_python_lists_are_arrays():
+    rod = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
+    listed = hr.helix_equilibria(rod, [0.5, 1.0], [[1.0], [1.5]])
+    arrays = hr.helix_equilibria(rod, np.array([0.5, 1.0]), np.array([[1.0], [1.5]]))
+    np.testing.assert_array_equal(listed.count, arrays.count)
+    np.testing.assert_array_equal(listed.force, arrays.force)
+    with pytest.raises(ValueError, match="kappa must be real numbers"):
+        hr.helix_equilibria(rod, ["a"], [1.0])

@@ -64,8 +64,8 @@ def test_interval_calibration(rng):
     n_sets = 240
     sF, sM = 0.01 * float(exact.force_sigma[0]), 0.01 * float(exact.moment_sigma[0])
     kf, km = jax.random.split(jax.random.key(7))
-    forces = np.asarray(exact.force + sF * jax.random.normal(kf, (n_sets, FIT_POINTS)))
-    moments = np.asarray(exact.moment + sM * jax.random.normal(km, (n_sets, FIT_POINTS)))
+    forces = np.asarray(exact.force[None] + sF * jax.random.normal(kf, (n_sets, FIT_POINTS)))
+    moments = np.asarray(exact.moment[None] + sM * jax.random.normal(km, (n_sets, FIT_POINTS)))
     p, stderr = [], []
     for F, M in zip(forces, moments):
         fit = hr.fit_stiffness(hr.HelixData(F, M, kappa, tau, sF, sM), uhat=rod.uhat, n_starts=1, init=rod)

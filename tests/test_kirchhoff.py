@@ -219,3 +219,10 @@ def test_wrench_growth_rate_against_a_numpy_jacobian():
         np.testing.assert_allclose(rate, expected, atol=1e-7)
         rates.append(rate)
     assert abs(rates[0]) < 1e-6 and rates[1] > 0.05 and rates[2] > rates[1]
+
+
+def test_frame_must_be_a_rotation():
+    rod = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
+    for frame in (2 * np.eye(3), np.diag([1.0, 1.0, -1.0])):
+        with pytest.raises(ValueError, match="solve_static: frame must be a rotation"):
+            hr.solve_static(rod, np.zeros(3), np.zeros(3), 1.0, frame0=frame)

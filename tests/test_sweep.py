@@ -184,3 +184,25 @@ def test_devices_and_memory_in_subprocess():
     assert report["same"] and report["close"]
     assert set(report["counts"]) <= {0, 2, 3, 4}
     assert report["peak_mb"] < 1200, report
+
+
+def test_save_is_atomic_and_keeps_the_name(atlas, tmp_path):
+    path = tmp_path / "atlas"  # no suffix: written under exactly this name
+    hr.save_sweep(path, atlas)
+    assert path.exists() and not (tmp_path / "atlas.npz").exists()
+    before = path.read_bytes()
+
+    class Interrupted(Exception):
+        pass
+
+    def failing(file):
+        file.write(b"partial")
+        raise Interrupted
+
+    from helixrod._misc import write_atomically
+
+    with pytest.raises(Interrupted):
+        write_atomically(path, failing)
+    assert path.read_bytes() == before  # the old file is whole
+    assert [p.name for p in tmp_path.iterdir()] == ["atlas"]  # no temporary left behind
+    np.testing.assert_array_equal(hr.load_sweep(path)[atlas.fields[0]], atlas[atlas.fields[0]])

@@ -15,6 +15,7 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._roots import register_roots
@@ -85,9 +86,11 @@ def register_coefficients(rod: Rod, kappa: ArrayLike, tau: ArrayLike):
 
 
 def _check_inputs(kappa, tau):
+    """The broadcast shape of `kappa` and `tau` (arrays, or NumPy-converted sequences)."""
     for name, x in (("kappa", kappa), ("tau", tau)):
-        if not jnp.issubdtype(jnp.result_type(x), jnp.number) or jnp.iscomplexobj(x):
-            raise ValueError(f"{name} must be real numbers, got dtype {jnp.result_type(x)}")
+        dtype = x.dtype if hasattr(x, "dtype") else jnp.result_type(x)
+        if not np.issubdtype(dtype, np.number) or np.issubdtype(dtype, np.complexfloating):
+            raise ValueError(f"{name} must be real numbers, got dtype {dtype}")
     try:
         return jnp.broadcast_shapes(jnp.shape(kappa), jnp.shape(tau))
     except ValueError:
@@ -116,6 +119,7 @@ def helix_equilibria(rod: Rod, kappa: ArrayLike, tau: ArrayLike) -> HelixEquilib
     eq.phi[eq.valid], eq.force[eq.valid], eq.stable[eq.valid]
     ```
     """
+    kappa, tau = (x if hasattr(x, "dtype") else np.asarray(x) for x in (kappa, tau))
     shape = _check_inputs(kappa, tau)
     dtype = jnp.result_type(float)
     batch = rod.K1.shape

@@ -22,7 +22,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._equilibria import HelixEquilibria
 from ._geometry import helix_centreline, helix_frame
-from ._lie import BodyVelocityTerm, CommutatorFreeRK4, MuntheKaasRK, RodState, tangent
+from ._lie import BodyVelocityTerm, CommutatorFreeRK4, MuntheKaasRK, RodState, check_rotation, tangent
 from ._misc import float_dtype, increasing_within, is_concrete
 from ._rod import check_one_rod
 from ._status import RESULTS, promote, raise_if_failed
@@ -255,6 +255,7 @@ def solve_static(
     x0 = jnp.zeros(3, dtype) if x0 is None else jnp.asarray(x0, dtype)
     if frame0.shape != (3, 3) or x0.shape != (3,):
         raise ValueError(f"solve_static: frame0 needs shape (3, 3) and x0 (3,), got {frame0.shape}, {x0.shape}")
+    check_rotation(frame0, "solve_static")
 
     finite = jnp.all(jnp.isfinite(n0)) & jnp.all(jnp.isfinite(m0))
     good_length = jnp.isfinite(length) & (length > 0)

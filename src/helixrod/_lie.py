@@ -16,7 +16,10 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
+
+from ._misc import is_concrete
 
 
 class RodState(eqx.Module):
@@ -320,3 +323,20 @@ class MuntheKaasRK(diffrax.AbstractAdaptiveSolver):
 
     def func(self, terms, t0, y0, args):
         return tangent(y0, *terms.vf(t0, y0, args))
+
+
+def check_rotation(frame: ArrayLike, owner: str) -> None:
+    """`ValueError` naming `owner` unless a concrete `frame` (`(..., 3, 3)`, columns d1, d2,
+    d3) is a rotation: $|D^TD - I| \le$ 1e-8 in float64 (1e3 machine epsilons in a lower
+    precision) and $\det D > 0$.  Traced frames pass (checked where they are made)."""
+    if not is_concrete(frame):
+        return
+    f = np.asarray(frame)
+    tolerance = max(1e-8, 1e3 * float(np.finfo(f.dtype if np.issubdtype(f.dtype, np.floating) else np.float64).eps))
+    gram = np.einsum("...ji,...jk->...ik", f, f) - np.eye(3)
+    error = np.abs(gram).max(initial=0.0)
+    if not np.isfinite(error) or error > tolerance or np.any(np.linalg.det(f) < 0):
+        raise ValueError(
+            f"{owner}: frame must be a rotation (orthonormal columns d1, d2, d3, det +1); "
+            f"max |D^T D - I| = {error:.2e}"
+        )

@@ -129,6 +129,26 @@ def solve_small(A: ArrayLike, b: ArrayLike) -> Array:
     return x
 
 
+def write_atomically(path, write, *, binary: bool = True) -> None:
+    """Write a file through `write(file)` into a temporary file beside `path`, then rename
+    it over `path`: an interrupted or failed write leaves an existing file whole.  The
+    name is used exactly as given (no suffix added)."""
+    import os
+    import tempfile
+
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    handle, temporary = tempfile.mkstemp(dir=folder, prefix=".", suffix=".part")
+    try:
+        with os.fdopen(handle, "wb" if binary else "w") as file:
+            write(file)
+        os.replace(temporary, path)
+    except BaseException:
+        if os.path.exists(temporary):
+            os.remove(temporary)
+        raise
+
+
 def newton_iterations(residual, x0, steps: int, project=None):
     """`steps` plain Newton steps $x \\leftarrow x - J(x)^{-1} f(x)$ on a small square system
     (a non-finite step is skipped), each optionally followed by `project(new, old)`; no

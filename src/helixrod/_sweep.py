@@ -21,6 +21,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._equilibria import helix_equilibria
+from ._misc import write_atomically
 from ._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
 
 #: Per-register fields (shape ``(len(kappa), len(tau), 4)``), with their numpy dtypes.
@@ -335,10 +336,15 @@ def _equilibrium_point_fn(fields: tuple[str, ...]) -> Callable:
 def save_sweep(path, result: SweepResult) -> None:
     """Write a `SweepResult` to an `.npz` file: every field under `field/<name>`, the grid
     axes `kappa`, `tau`, the rod as `rod` = (K1, K2, K3, K13, K23, uhat1, uhat2, uhat3),
-    and a JSON `meta` string (format version, field names, rod keys).  No pickles."""
+    and a JSON `meta` string (format version, field names, rod keys).  No pickles.  The file
+    is written to a temporary file beside `path` and renamed over it (an interrupted write
+    leaves a previous file whole); `path` is used as given (no `.npz` is appended)."""
     meta = {"format": "helixrod.sweep", "version": 1, "fields": list(result.fields), "rod_keys": list(PARAMETER_NAMES)}
     arrays = {f"field/{name}": result[name] for name in result.fields}
-    np.savez(path, kappa=result.kappa, tau=result.tau, rod=np.asarray(rod_vector(result.rod), np.float64), meta=np.asarray(json.dumps(meta)), **arrays)
+    rod = np.asarray(rod_vector(result.rod), np.float64)
+    write_atomically(
+        path, lambda file: np.savez(file, kappa=result.kappa, tau=result.tau, rod=rod, meta=np.asarray(json.dumps(meta)), **arrays)
+    )
 
 
 def load_sweep(path) -> SweepResult:

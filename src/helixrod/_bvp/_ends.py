@@ -33,8 +33,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._geometry import unloaded_observables, unloaded_state
-from .._lie import gibbs, rotation_vector, rotation_z, so3_exp
-from .._misc import finite_array, finite_scalar, float_dtype, is_concrete
+from .._lie import check_rotation, gibbs, rotation_vector, rotation_z, so3_exp
+from .._misc import finite_array, finite_scalar, float_dtype
 
 CLAMPED, LOADED, TWEEZER = 0, 1, 2
 
@@ -71,17 +71,6 @@ def axial_controls(**values) -> tuple[str, dict]:
         pairs = [" and ".join(p.split("-")) for p in AXIAL_CONTROLS]
         raise ValueError(f"give one of the pairs {pairs}, got {list(given) or 'nothing'}")
     return name, given
-
-
-def _check_rotation(frame, owner):
-    if is_concrete(frame):
-        f = np.asarray(frame)
-        gram = np.einsum("...ji,...jk->...ik", f, f) - np.eye(3)
-        if np.abs(gram).max(initial=0.0) > 1e-8 or np.any(np.linalg.det(f) < 0):
-            raise ValueError(
-                f"{owner}: frame must be a rotation (orthonormal columns d1, d2, d3, det +1); "
-                f"max |D^T D - I| = {np.abs(gram).max(initial=0.0):.2e}"
-            )
 
 
 class AbstractEnd(eqx.Module):
@@ -170,7 +159,7 @@ class Clamped(AbstractEnd):
     def __init__(self, position: ArrayLike = (0.0, 0.0, 0.0), frame: ArrayLike | None = None):
         position = finite_array(position, "position", "Clamped", (3,))
         frame = jnp.eye(3, dtype=position.dtype) if frame is None else finite_array(frame, "frame", "Clamped", (3, 3))
-        _check_rotation(frame, "Clamped")
+        check_rotation(frame, "Clamped")
         self.position, self.frame = position, frame
 
     def condition(self) -> EndCondition:
@@ -212,7 +201,7 @@ class Tweezer(AbstractEnd):
     def __init__(self, frame: ArrayLike, force: ArrayLike):
         self.frame = finite_array(frame, "frame", "Tweezer", (3, 3))
         self.force = finite_array(force, "force", "Tweezer", (3,))
-        _check_rotation(self.frame, "Tweezer")
+        check_rotation(self.frame, "Tweezer")
 
     def condition(self) -> EndCondition:
         return end_condition(TWEEZER, frame=self.frame, force=self.force)

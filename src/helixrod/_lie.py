@@ -327,8 +327,8 @@ class MuntheKaasRK(diffrax.AbstractAdaptiveSolver):
 
 def check_rotation(frame: ArrayLike, owner: str) -> None:
     """`ValueError` naming `owner` unless a concrete `frame` (`(..., 3, 3)`, columns d1, d2,
-    d3) is a rotation: $|D^TD - I| \le$ 1e-8 in float64 (1e3 machine epsilons in a lower
-    precision) and $\det D > 0$.  Traced frames pass (checked where they are made)."""
+    d3) is a rotation: $|D^TD - I| \\le$ 1e-8 in float64 (1e3 machine epsilons in a lower
+    precision) and $\\det D > 0$.  Traced frames pass (checked where they are made)."""
     if not is_concrete(frame):
         return
     f = np.asarray(frame)

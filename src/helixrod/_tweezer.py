@@ -497,11 +497,12 @@ def tweezer_moduli(
     def at(F):
         def observables(wrench):
             bulk, _ = _bulk(rod, ell, wrench[0], wrench[1])
-            return jnp.stack([bulk.extension, bulk.rotation])
+            values = jnp.stack([bulk.extension, bulk.rotation])
+            return values, values
 
         wrench = jnp.stack([F, jnp.zeros((), dtype)])
-        height = observables(wrench)[0]
-        compliance = jax.jacfwd(observables)(wrench)  # d(h, Theta)/d(F, M), per base pair
+        # d(h, Theta)/d(F, M) per base pair, and (h, Theta) from the same solve.
+        compliance, (height, _) = jax.jacfwd(observables, has_aux=True)(wrench)
         stiffness = height * jnp.linalg.inv(compliance)  # per unit axial length (effective_moduli)
         S, C, g = stiffness[0, 0], stiffness[1, 1], 0.5 * (stiffness[0, 1] + stiffness[1, 0])
         _, _, _, _, _, _, (C0, C_eff, buckling), _ = response_point(

@@ -215,6 +215,15 @@ class TweezerResponse(eqx.Module):
         return self.result == RESULTS.successful
 
 
+def filament_and_rise(rod, length_per_bp=None) -> tuple[Array, Array]:
+    """The filament length $\ell$ per base pair (default: the B-DNA backbone of
+    `helix_from_bdna`) and the rise $h_0 = \ell\,\hat u_3/|\hat u|$ of the unloaded helix."""
+    dtype = float_dtype()
+    ell = jnp.asarray(helix_from_bdna()[2] if length_per_bp is None else length_per_bp, dtype)
+    uhat = jnp.asarray(rod.uhat, dtype)
+    return ell, ell * uhat[2] / jnp.linalg.norm(uhat)
+
+
 def _bulk(rod, ell, force, torque):
     """The rod's helix under (force, torque) and its Gibbs free energy per base pair.
 
@@ -415,9 +424,7 @@ def tweezer_response(
                 raise ValueError(f"tweezer_response: {name} must be {rule} (bad at flat indices {np.flatnonzero(bad)[:5].tolist()})")
     if not (math.isfinite(temperature) and temperature > 0):
         raise ValueError(f"tweezer_response: temperature must be finite and > 0 kelvin, got {temperature}")
-    ell = jnp.asarray(helix_from_bdna()[2] if length_per_bp is None else length_per_bp, dtype)
-    uhat = jnp.asarray(rod.uhat, dtype)
-    rise = ell * uhat[2] / jnp.linalg.norm(uhat)
+    ell, rise = filament_and_rise(rod, length_per_bp)
     if x.size == 0:
         empty = jnp.zeros(shape, dtype)
         return TweezerResponse(*([empty] * 3), jnp.zeros(shape, jnp.int32), *([empty] * 7), RESULTS.where(jnp.zeros(shape, bool), RESULTS.successful, RESULTS.successful))
@@ -487,9 +494,7 @@ def tweezer_moduli(
         raise ValueError(f"tweezer_moduli: force must be a scalar or 1-D, got shape {force.shape}")
     if is_concrete(force) and not np.all(np.asarray(force) > 0):
         raise ValueError("tweezer_moduli: force must be finite and > 0 pN")
-    ell = jnp.asarray(helix_from_bdna()[2] if length_per_bp is None else length_per_bp, dtype)
-    uhat = jnp.asarray(rod.uhat, dtype)
-    rise = ell * uhat[2] / jnp.linalg.norm(uhat)
+    ell, rise = filament_and_rise(rod, length_per_bp)
     kT = thermal_energy(temperature)
     A = jnp.asarray(persistence_length, dtype)
     P = jnp.asarray(plectoneme_twist_persistence, dtype)

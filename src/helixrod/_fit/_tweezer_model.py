@@ -27,7 +27,7 @@ from jaxtyping import Array
 
 from .._dna import helix_from_bdna, kT as thermal_energy
 from .._status import RESULTS
-from .._tweezer import PLECTONEME_TWIST_PERSISTENCE, response_point
+from .._tweezer import PLECTONEME_TWIST_PERSISTENCE, filament_and_rise, response_point
 from ._models import AbstractForwardModel, forward_model
 from ._parameters import ModelParameter
 from ._tweezer_data import TweezerData
@@ -76,8 +76,7 @@ class TweezerModel(AbstractForwardModel):
 
     def _predict(self, rod, extra, force, control):
         A, P, offsets = extra[0], extra[1], extra[2:]
-        uhat = jnp.asarray(rod.uhat)
-        rise = self.length_per_bp * uhat[2] / jnp.linalg.norm(uhat)
+        _, rise = filament_and_rise(rod, self.length_per_bp)
         N = self.n_bp[self.molecule]
         per_bp = jnp.where(self.torque_controlled, control, 2 * jnp.pi * control / N)
 

@@ -216,8 +216,8 @@ class TweezerResponse(eqx.Module):
 
 
 def filament_and_rise(rod, length_per_bp=None) -> tuple[Array, Array]:
-    """The filament length $\ell$ per base pair (default: the B-DNA backbone of
-    `helix_from_bdna`) and the rise $h_0 = \ell\,\hat u_3/|\hat u|$ of the unloaded helix."""
+    """The filament length $\\ell$ per base pair (default: the B-DNA backbone of
+    `helix_from_bdna`) and the rise $h_0 = \\ell\\,\\hat u_3/|\\hat u|$ of the unloaded helix."""
     dtype = float_dtype()
     ell = jnp.asarray(helix_from_bdna()[2] if length_per_bp is None else length_per_bp, dtype)
     uhat = jnp.asarray(rod.uhat, dtype)

@@ -55,15 +55,17 @@ def test_helix_residuals_are_the_normalised_errors_of_the_chosen_registers(noisy
 
 
 def test_solver_objects(noisy):
-    """An optimistix least-squares solver object equal to the default alias gives the same
-    fit; a minimiser is accepted for helix data; rtol= with an object is an error."""
+    """An optimistix least-squares solver object gives the same fit as the default alias
+    (helixrod's Levenberg-Marquardt, which differs from optimistix's only in accepting steps
+    at round-off: the two stop within 1e-9 of each other); a minimiser is accepted for helix
+    data; rtol= with an object is an error."""
     rod, data, fit = noisy
     same = hr.fit_stiffness(data, uhat=rod.uhat, solver=optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12))
     assert same.method == "LevenbergMarquardt" and fit.method == "levenberg-marquardt"
     for name in fit.names:
-        np.testing.assert_allclose(float(same.params[name]), float(fit.params[name]), rtol=1e-12)
-        np.testing.assert_allclose(float(same.stderr[name]), float(fit.stderr[name]), rtol=1e-10)
-    np.testing.assert_allclose(same.residuals, fit.residuals, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(float(same.params[name]), float(fit.params[name]), rtol=1e-9)
+        np.testing.assert_allclose(float(same.stderr[name]), float(fit.stderr[name]), rtol=1e-8)
+    np.testing.assert_allclose(same.residuals, fit.residuals, rtol=1e-8, atol=1e-9)
     small = hr.HelixData(data.force[:3], data.moment[:3], data.kappa[:3], data.tau[:3], data.force_sigma[:3],
                          data.moment_sigma[:3])
     adam = hr.fit_stiffness(small, uhat=rod.uhat, solver=ADAM, n_starts=1, max_steps=8)

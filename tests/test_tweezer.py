@@ -4,6 +4,8 @@ Moroz-Nelson softening from the rod's own moduli, Marko's closed forms for buckl
 the plateau, derivatives against central differences, bad input and flagged points; the
 tweezer fit recovers its generating parameters (slow)."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -216,6 +218,21 @@ def test_moduli_along_the_force_range():
     # The coupling weakens with force (the rod's nonlinearity), and the buckling torque grows.
     assert np.all(np.diff(np.asarray(moduli.twist_stretch_coupling)) > 0)
     assert np.all(np.diff(np.asarray(moduli.buckling_torque[1:])) > 0)
+    # The figure: four panels with units, error bands, and tWLC's g(F) beside the rod's.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from helixrod import plot
+
+    stderr = jax.tree.map(lambda x: 0.01 * jnp.abs(x), moduli)
+    fig = plot.plot_tweezer_moduli(moduli, stderr=stderr, twlc=(-637.0, 17.0, 30.6))
+    FigureCanvasAgg(fig).draw()
+    assert [ax.get_ylabel().split(" (")[-1] for ax in fig.axes] == ["pN)", "pN nm$^2$)", "pN nm)", "pN nm)"]
+    assert all(ax.get_xlabel() == "force (pN)" and ax.get_xscale() == "log" for ax in fig.axes)
+    rod_line, twlc_line = fig.axes[2].get_lines()
+    np.testing.assert_allclose(twlc_line.get_ydata(), -637.0 + 17.0 * np.maximum(np.asarray(forces), 30.6))
+    np.testing.assert_allclose(rod_line.get_ydata(), moduli.twist_stretch_coupling)
+    with pytest.raises(ValueError, match="two or more forces"):
+        plot.plot_tweezer_moduli(jax.tree.map(lambda x: x[:1], moduli))
 
 
 def test_free_swivel_matches_pylake_twlc_with_constant_coupling():
@@ -270,3 +287,38 @@ def test_tweezer_error_bars_are_calibrated():
         centre = float(fit.params[name])
         covered = np.mean(np.abs(samples - centre) <= 1.96 * float(fit.stderr[name]))
         assert 0.9 < covered < 0.99, (name, covered)
+
+
+def test_the_static_paths_agree_with_the_general_one():
+    """Free swivels (one solve), torque-controlled points (no iteration) and the traced
+    general path (the chord iteration) give the same response and derivatives."""
+    ell, rise = tw.filament_and_rise(ROD)
+    kT = jnp.asarray(KT)
+
+    def point(force, control, controlled):
+        out = tw.response_point(ROD, ell, rise, force, control, controlled, jnp.asarray(48.0), jnp.asarray(24.0), kT)
+        return jnp.stack([out[0], out[1], out[2], *out[6]])
+
+    def with_derivative(f, force):
+        return f(force), jax.jacfwd(f)(force)
+
+    @jax.jit
+    def general(force, control):  # the control and its kind traced
+        return with_derivative(lambda F: point(F, control, jnp.asarray(True)), force)
+
+    @functools.partial(jax.jit, static_argnums=1)
+    def static(force, control):  # a Python number and True
+        return with_derivative(lambda F: point(F, control, True), force)
+
+    for torque in (0.0, 5.0):
+        general_value, d_general = general(jnp.asarray(2.0), jnp.asarray(torque))
+        static_value, d_static = static(jnp.asarray(2.0), torque)
+        np.testing.assert_allclose(static_value, general_value, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(d_static, d_general, rtol=1e-9, atol=1e-12)
+    # tweezer_response takes the free-swivel path for concrete zero torques, the general one
+    # under jit.
+    forces = jnp.geomspace(0.1, 40.0, 7)
+    eager = tw.tweezer_response(ROD, 8000, forces, torque=0.0)
+    traced = jax.jit(lambda f: tw.tweezer_response(ROD, 8000, f, torque=jnp.zeros_like(f)))(forces)
+    np.testing.assert_allclose(eager.extension, traced.extension, rtol=1e-12)
+    np.testing.assert_allclose(eager.twist_modulus, traced.twist_modulus, rtol=1e-12)

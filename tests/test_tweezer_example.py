@@ -180,7 +180,25 @@ def test_cli_tweezer_fit_on_a_subset(example, tmp_path):
     assert abs(S["value"] - 1100) < 4 * S["stderr"] + 50 and abs(C["value"] - 410) < 4 * C["stderr"] + 20
     assert 30 < summary["params"]["persistence_length"] < 70
     assert (tmp_path / "fit.png").stat().st_size > 10_000
-    assert subset.n_points == 22
+    assert subset.n_points == 22 and summary["profile_intervals"] == {}
+
+
+@pytest.mark.slow
+def test_cli_profile_likelihood(example, tmp_path):
+    """`--profile NAME` prints and saves the profile-likelihood interval (slow: the vmapped
+    refits compile for ~2.5 minutes on 2 cores)."""
+    _subset_csv(example, tmp_path / "subset.csv")
+    args = ["tweezer-fit", str(tmp_path / "subset.csv"), "--out", str(tmp_path / "fit.json"), "--profile", "persistence_length"]
+    result = CliRunner(env={"COLUMNS": "200"}).invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "95 % intervals: profile likelihood" in result.output and "profile lower" in result.output
+    summary = json.loads((tmp_path / "fit.json").read_text())
+    lo, hi = summary["profile_intervals"]["persistence_length"]
+    value, stderr = summary["params"]["persistence_length"], summary["stderr"]["persistence_length"]
+    # The interval brackets the value, near value +- 1.96 stderr (the likelihood is close to
+    # normal in the persistence length here).
+    assert lo < value < hi
+    assert abs(lo - (value - 1.96 * stderr)) < 0.25 * stderr and abs(hi - (value + 1.96 * stderr)) < 0.25 * stderr
 
 
 def test_parse_fix():
@@ -197,6 +215,7 @@ def test_parse_fix():
         (["DATA", "--fix", "K1=1000,K13"], "error: --fix entry 'K13' is not NAME=VALUE"),
         (["DATA", "--fix", "K13=0,K13=1"], "error: --fix names K13 twice"),
         (["DATA", "--n-bp", "-5"], "error: --n-bp must be a positive number of base pairs"),
+        (["DATA", "--profile", "K1"], "error: --profile K1: that parameter is held fixed (--fix)"),
         (["BAD"], "bad.csv:2: units line has 2 cells, header has 5"),
     ],
 )

@@ -24,6 +24,7 @@ from ._bvp import (
     rotation_response as rotation_response,
     solve_boundary_value as solve_boundary_value,
 )
+from ._cache import enable_compilation_cache as enable_compilation_cache
 from ._constitutive import StrainEnergyRod as StrainEnergyRod
 from ._datasets import SpringExample as SpringExample, load_spring_example as load_spring_example
 from ._equilibria import (

@@ -149,15 +149,29 @@ def write_atomically(path, write, *, binary: bool = True) -> None:
         raise
 
 
-def newton_iterations(residual, x0, steps: int, project=None):
-    """`steps` plain Newton steps $x \\leftarrow x - J(x)^{-1} f(x)$ on a small square system
-    (a non-finite step is skipped), each optionally followed by `project(new, old)`; no
-    convergence test and no derivatives through the iteration (for initial guesses and
-    seeds that a caller checks afterwards)."""
+def newton_iterations(residual, x0, steps: int, project=None, tolerance=None):
+    """At most `steps` plain Newton steps $x \\leftarrow x - J(x)^{-1} f(x)$ on a small square
+    system (a non-finite step is skipped), each optionally followed by `project(new, old)`; no
+    derivatives through the iteration (for initial guesses and seeds that a caller checks
+    afterwards).  Without `tolerance` all `steps` run; with it the iteration stops once
+    every component of a step is below `tolerance` (under `vmap`: once all points have)."""
 
-    def step(_, x):
+    def step(x):
         dx = solve_small(jax.jacfwd(residual)(x), residual(x))
-        new = x - jnp.where(jnp.all(jnp.isfinite(dx)), dx, 0.0)
-        return new if project is None else project(new, x)
+        dx = jnp.where(jnp.all(jnp.isfinite(dx)), dx, 0.0)
+        new = x - dx
+        return (new if project is None else project(new, x)), jnp.max(jnp.abs(dx))
 
-    return jax.lax.fori_loop(0, steps, step, x0)
+    if tolerance is None:
+        return jax.lax.fori_loop(0, steps, lambda _, x: step(x)[0], x0)
+
+    def unfinished(state):
+        i, _, size = state
+        return (i < steps) & (size > tolerance)
+
+    def advance(state):
+        i, x, _ = state
+        return (i + 1, *step(x))
+
+    start = (jnp.zeros((), jnp.int32), x0, jnp.full((), jnp.inf, jnp.result_type(x0)))
+    return jax.lax.while_loop(unfinished, advance, start)[1]

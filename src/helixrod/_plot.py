@@ -463,3 +463,48 @@ def plot_tweezer_fit(fit, data, path=None):
     molecules = f"{len(names)} molecule{'s' if len(names) != 1 else ''}"
     fig.suptitle(f"tweezer fit: {n} points of {molecules}, reduced $\\chi^2$ = {chi2:.3g}")
     return _finish(fig, path)
+
+
+def plot_tweezer_moduli(moduli, path=None, *, stderr=None, twlc=None):
+    """The moduli of a molecule along the force range (`dna.tweezer_moduli`) in the
+    single-molecule literature's terms, four panels against force (logarithmic axis): the
+    stretch modulus S; the twist modulus C, at constant force $C - g^2/S$ and with the
+    Moroz-Nelson softening; the twist-stretch coupling g; the buckling torque.
+
+    `stderr`: the standard errors of the same fields (a `TweezerModuli`, e.g. from
+    `fit.propagate(lambda rod, p: dna.tweezer_moduli(rod, forces, ...))`), drawn as
+    +-1 sigma bands.  `twlc`: the twistable worm-like chain's phenomenological coupling
+    to draw beside the rod's, `(g0, g1, Fc)` in pN nm, nm and pN as pylake's `twlc_distance`
+    uses them, $g(F) = g_0 + g_1 \\max(F, F_c)$ (Gross et al., Nature Phys. 7, 731 (2011)).
+    `path=None` returns the matplotlib `Figure`; otherwise writes it and returns `path`."""
+    force = np.asarray(moduli.force, dtype=float)
+    if force.ndim != 1 or force.size < 2:
+        raise ValueError("plot_tweezer_moduli: needs moduli at two or more forces (a 1-D force array)")
+    fig, axes = _figure(2, 2, width=4.4, height=3.4)
+    axes = np.asarray(axes).reshape(-1)
+    panels = (
+        ("stretch modulus S (pN)", (("stretch_modulus", "S of the rod's helix"),)),
+        ("twist modulus (pN nm$^2$)", (("twist_modulus", "C"), ("twist_modulus_at_constant_force", "$C - g^2/S$ (constant force)"),
+                                       ("effective_twist_modulus", "$C_{eff}$ (Moroz-Nelson)"))),
+        ("twist-stretch coupling g (pN nm)", (("twist_stretch_coupling", "g of the rod (mechanistic)"),)),
+        ("buckling torque (pN nm)", (("buckling_torque", "Marko (2007)"),)),
+    )
+    for ax, (label, fields) in zip(axes, panels):
+        for i, (field, name) in enumerate(fields):
+            value = np.asarray(getattr(moduli, field), dtype=float)
+            colour = OKABE_ITO[i % 8]
+            ax.plot(force, value, "-", color=colour, lw=1.4, label=name)
+            if stderr is not None:
+                err = np.asarray(getattr(stderr, field), dtype=float)
+                ax.fill_between(force, value - err, value + err, color=colour, alpha=0.25, lw=0)
+        ax.set_xscale("log")
+        ax.set_xlabel("force (pN)")
+        ax.set_ylabel(label)
+    if twlc is not None:
+        g0, g1, fc = (float(x) for x in twlc)
+        axes[2].plot(force, g0 + g1 * np.maximum(force, fc), "--", color=OKABE_ITO[3], lw=1.4,
+                     label=f"tWLC $g_0 + g_1\\max(F, F_c)$ ({g0:g} pN nm, {g1:g} nm, {fc:g} pN)")
+    for ax in axes:
+        ax.legend(fontsize=7)
+    fig.suptitle("the molecule's moduli along the force range" + (" ($\\pm 1\\sigma$)" if stderr is not None else ""))
+    return _finish(fig, path)

@@ -86,6 +86,7 @@ _FORCE_MOMENT = np.array([AXIAL_OBSERVABLES.index("force"), AXIAL_OBSERVABLES.in
 _BISECTIONS = 64
 _CHORD_STEPS = 6
 _TRIAL_NEWTON_STEPS = 16
+_NEWTON_STEP_TOLERANCE = 1e-10  # in the scaled unknowns of bulk_helix_at; two more steps follow
 # Stands for an infinite buckling torque or rotation inside the computation (finite: see there).
 NO_BUCKLING = 1e100
 
@@ -224,22 +225,23 @@ def filament_and_rise(rod, length_per_bp=None) -> tuple[Array, Array]:
     return ell, ell * uhat[2] / jnp.linalg.norm(uhat)
 
 
-def _bulk(rod, ell, force, torque):
+def _bulk(rod, ell, force, torque, guess=None):
     """The rod's helix under (force, torque) and its Gibbs free energy per base pair.
 
-    A plain Newton iteration (no derivatives) goes first; where it does not converge the
-    differentiated solve runs at zero load instead (and the point is flagged).  Derivatives
-    are those of two Newton steps from the frozen root (`newton_derivatives`): exact to
-    second order -- the twist stiffness is itself a derivative, differentiated again by a
-    fit -- and dense solves that never raise when a least-squares solver probes with a
-    non-finite tangent."""
+    A plain Newton iteration (no derivatives) from `guess` (`(u, mu1, mu2)`, default the
+    unloaded helix) goes first, stopped once its steps are at round-off; where it does not
+    converge the point is flagged and the differentiated part runs at zero load, whose root
+    (the unloaded helix) is known.  Derivatives are those of two Newton steps from the frozen
+    root (`newton_derivatives`): exact to second order -- the twist stiffness is itself a
+    derivative, differentiated again by a fit -- and dense solves that never raise when a
+    least-squares solver probes with a non-finite tangent."""
     values = jnp.stack([force, torque, 0.0 * force, 0.0 * force])
-    trial = bulk_helix_at(rod, ell, _FORCE_MOMENT, values, max_steps=_TRIAL_NEWTON_STEPS, light=True)
-    good = trial.ok & jnp.all(jnp.isfinite(trial.u))
-    bulk = bulk_helix_at(
-        rod, ell, _FORCE_MOMENT, jnp.where(good, values, 0.0), max_steps=_TRIAL_NEWTON_STEPS, newton_derivatives=True,
-        guess=(jnp.where(good, trial.u, jnp.asarray(rod.uhat)), jnp.where(good, trial.mu1, 0.0), jnp.where(good, trial.mu2, 0.0)),
+    trial = bulk_helix_at(
+        rod, ell, _FORCE_MOMENT, values, guess, max_steps=_TRIAL_NEWTON_STEPS, light=True, step_tolerance=_NEWTON_STEP_TOLERANCE
     )
+    good = trial.ok & jnp.all(jnp.isfinite(trial.u))
+    root = (jnp.where(good, trial.u, jnp.asarray(rod.uhat)), jnp.where(good, trial.mu1, 0.0), jnp.where(good, trial.mu2, 0.0))
+    bulk = bulk_helix_at(rod, ell, _FORCE_MOMENT, jnp.where(good, values, 0.0), root, max_steps=0, newton_derivatives=True)
     gibbs = ell * (rod.energy(bulk.u) - force * bulk.extension / ell - torque * bulk.rotation / ell)
     result = RESULTS.where(good, bulk.result, RESULTS.residual_above_tolerance)
     return eqx.tree_at(lambda b: b.result, bulk, result), gibbs
@@ -248,7 +250,10 @@ def _bulk(rod, ell, force, torque):
 def response_point(rod, ell, rise, force, control, torque_controlled, persistence_length, plectoneme_twist, kT):
     """One base pair's extension, rotation and state at `force` under `control` (a torque if
     `torque_controlled`, else a rotation per base pair in radians); helper of
-    `tweezer_response` and of the tweezer fit model, unbatched and traced.
+    `tweezer_response` and of the tweezer fit model, unbatched and traced.  `torque_controlled`
+    is a traced boolean or a Python bool; `True` as a Python bool skips the iteration that
+    turned points need (one solve of the rod instead of `_CHORD_STEPS`), and with `control`
+    the Python number 0 (a free swivel) the solve at zero torque is the answer.
 
     Returns `(extension_per_bp, rotation_per_bp, torque, phase, fraction, parts, moduli,
     result)` with `parts = (intrinsic, bending, twist)` per base pair and `moduli =
@@ -256,6 +261,9 @@ def response_point(rod, ell, rise, force, control, torque_controlled, persistenc
     where `result` flags the point, so a fit sees a smooth cost."""
     dtype = float_dtype()
     A, P = persistence_length, plectoneme_twist
+    free_swivel = torque_controlled is True and isinstance(control, (int, float)) and control == 0
+    controlled = jnp.asarray(torque_controlled)
+    control = jnp.asarray(control, dtype)
     good_input = jnp.isfinite(force) & (force > 0) & jnp.isfinite(control) & (A > 0) & (P > 0)
     F = jnp.where(good_input, force, 1.0)
     control = jnp.where(good_input, control, 0.0)
@@ -263,10 +271,10 @@ def response_point(rod, ell, rise, force, control, torque_controlled, persistenc
     # The rod at zero torque, and its torsional compliance there (one tangent).
     def rotation_at(torque):
         bulk, gibbs = _bulk(rod, ell, F, torque)
-        return bulk.rotation, (bulk.extension, gibbs, bulk.result)
+        return bulk.rotation, (gibbs, bulk.result, bulk.extension, (bulk.u, bulk.mu1, bulk.mu2))
 
     zero = jnp.zeros((), dtype)
-    rotation0, compliance, (_, gibbs0, result0) = jax.jvp(rotation_at, (zero,), (jnp.ones_like(zero),), has_aux=True)
+    rotation0, compliance, (gibbs0, result0, extension0, root0) = jax.jvp(rotation_at, (zero,), (jnp.ones_like(zero),), has_aux=True)
     C0 = rise / compliance
 
     # Twist fluctuations (Moroz-Nelson) as a series compliance t(F) and its force derivative.
@@ -300,41 +308,52 @@ def response_point(rod, ell, rise, force, control, torque_controlled, persistenc
     r_p = jnp.where(buckles, rise * buckling / plectoneme_modulus, 2 * NO_BUCKLING)
 
     # The extended phase's torque: given, or by chord steps on its rotation (slope rise/C_eff,
-    # converging like the rod's nonlinearity, a few % per step); the rod's helix is solved
-    # once per step and the last solve is the answer (one trace of the solver for both).
+    # converging like the rod's nonlinearity, a few % per step, each Newton solve started
+    # from the last); the last solve is the answer.  `torque_controlled=True` (a Python
+    # bool) needs no steps: one solve at the held torque.
     r = jnp.abs(control)
     target = jnp.minimum(r, r_s) * sign
-    beyond_plateau = torque_controlled & (jnp.abs(control) >= buckling)
+    beyond_plateau = controlled & (jnp.abs(control) >= buckling)
     held = jnp.where(beyond_plateau, plateau, control)
 
-    def chord(_, state):
-        torque = state[0]
-        bulk, _ = _bulk(rod, ell, F, torque)
-        rotation = bulk.rotation - rotation0 + rise * torque * series
-        step = torque + (target - rotation) * C_eff / rise
-        return jnp.where(torque_controlled, held, step), torque, bulk.extension, rotation, bulk.result
+    def extended_at(torque, guess):
+        bulk, _ = _bulk(rod, ell, F, torque, guess)
+        return bulk, bulk.rotation - rotation0 + rise * torque * series
 
-    start = jnp.where(torque_controlled, held, target * C_eff / rise)
-    initial = (start, start, jnp.zeros((), dtype), jnp.zeros((), dtype), result0)
-    _, torque_extended, intrinsic, rotation_extended, result_extended = jax.lax.fori_loop(
-        0, _CHORD_STEPS, chord, initial
-    )
+    if free_swivel:
+        torque_extended, intrinsic, rotation_extended, result_extended = zero, extension0, zero, result0
+    elif torque_controlled is True:
+        bulk, rotation_extended = extended_at(held, root0)
+        torque_extended, intrinsic, result_extended = held, bulk.extension, bulk.result
+    else:
+
+        def chord(_, state):
+            torque, guess = state[0], state[-1]
+            bulk, rotation = extended_at(torque, guess)
+            step = torque + (target - rotation) * C_eff / rise
+            return jnp.where(controlled, held, step), torque, bulk.extension, rotation, bulk.result, (bulk.u, bulk.mu1, bulk.mu2)
+
+        start = jnp.where(controlled, held, target * C_eff / rise)
+        initial = (start, start, zero, zero, result0, root0)
+        _, torque_extended, intrinsic, rotation_extended, result_extended, _ = jax.lax.fori_loop(
+            0, _CHORD_STEPS, chord, initial
+        )
     bending = -rise * (1 - z)
     twist = rise * 0.5 * torque_extended**2 * series_slope
 
     # Phases.
-    coexisting = ~torque_controlled & (r > r_s) & (r < r_p)
-    plectonemic = jnp.where(torque_controlled, beyond_plateau, r >= r_p)
+    coexisting = ~controlled & (r > r_s) & (r < r_p)
+    plectonemic = jnp.where(controlled, beyond_plateau, r >= r_p)
     fraction = jnp.where(coexisting, (r_p - r) / jnp.where(coexisting, r_p - r_s, 1.0), 1.0)
     fraction = jnp.where(plectonemic, 0.0, fraction)
     phase = jnp.where(plectonemic, 2, jnp.where(coexisting, 1, 0))
     torque = jnp.where(
-        torque_controlled,
+        controlled,
         control,
         jnp.where(plectonemic, sign * plectoneme_modulus * r / rise, jnp.where(coexisting, plateau, torque_extended)),
     )
     rotation = jnp.where(
-        torque_controlled,
+        controlled,
         jnp.where(plectonemic, rise * control / plectoneme_modulus, rotation_extended),
         control,
     )
@@ -349,9 +368,11 @@ def response_point(rod, ell, rise, force, control, torque_controlled, persistenc
 
 
 @eqx.filter_jit
-def _responses(rod, ell, rise, force, control, torque_controlled, n_bp, persistence_length, plectoneme_twist, kT):
-    def one(F, x, by_torque, N, A, P):
-        per_bp = jnp.where(by_torque, x, 2 * jnp.pi * x / N)  # a torque, or radians per bp
+def _responses(rod, ell, rise, force, control, by_torque: bool, n_bp, persistence_length, plectoneme_twist, kT):
+    """`response_point` per point, scaled to whole molecules; `control=None`: a free swivel."""
+
+    def one(F, x, N, A, P):
+        per_bp = 0.0 if x is None else x if by_torque else 2 * jnp.pi * x / N  # a torque, or radians per bp
         ext, rot, torque, phase, fraction, parts, moduli, result = response_point(
             rod, ell, rise, F, per_bp, by_torque, A, P, kT
         )
@@ -364,7 +385,7 @@ def _responses(rod, ell, rise, force, control, torque_controlled, n_bp, persiste
             result,
         )
 
-    return jax.vmap(one)(force, control, torque_controlled, n_bp, persistence_length, plectoneme_twist)
+    return jax.vmap(one)(force, control, n_bp, persistence_length, plectoneme_twist)
 
 
 def tweezer_response(
@@ -429,8 +450,10 @@ def tweezer_response(
         empty = jnp.zeros(shape, dtype)
         return TweezerResponse(*([empty] * 3), jnp.zeros(shape, jnp.int32), *([empty] * 7), RESULTS.where(jnp.zeros(shape, bool), RESULTS.successful, RESULTS.successful))
     kT = thermal_energy(temperature)
-    by_torque_mask = jnp.full(x.shape, by_torque)
-    ext, rot, tq, phase, fraction, parts, moduli, result = _responses(rod, ell, rise, F, x, by_torque_mask, n, A, P, kT)
+    free_swivel = by_torque and is_concrete(x) and not np.any(np.asarray(x))
+    ext, rot, tq, phase, fraction, parts, moduli, result = _responses(
+        rod, ell, rise, F, None if free_swivel else x, by_torque, n, A, P, kT
+    )
     turns_out = rot / (2 * jnp.pi) if by_torque else x
     shaped = lambda a: a.reshape(shape)
     response = TweezerResponse(
@@ -511,7 +534,7 @@ def tweezer_moduli(
         stiffness = height * jnp.linalg.inv(compliance)  # per unit axial length (effective_moduli)
         S, C, g = stiffness[0, 0], stiffness[1, 1], 0.5 * (stiffness[0, 1] + stiffness[1, 0])
         _, _, _, _, _, _, (C0, C_eff, buckling), _ = response_point(
-            rod, ell, rise, F, jnp.zeros((), dtype), jnp.asarray(True), A, P, kT
+            rod, ell, rise, F, 0.0, True, A, P, kT
         )
         in_range = C0 / (4 * A * kT) * jnp.sqrt(kT / (A * F)) <= MAX_TWIST_CORRECTION
         C_eff = jnp.where(in_range, C_eff, jnp.nan)

@@ -16,4 +16,5 @@ from ._plot import (
     plot_stable_wrench as plot_stable_wrench,
     plot_sweep_summary as plot_sweep_summary,
     plot_tweezer_fit as plot_tweezer_fit,
+    plot_tweezer_moduli as plot_tweezer_moduli,
 )

@@ -82,13 +82,23 @@ def _bulk_residual(z, args):
 
 
 def bulk_helix_at(
-    rod, length, index, values, guess=None, *, max_steps: int = 64, light: bool = False, newton_derivatives: bool = False
+    rod,
+    length,
+    index,
+    values,
+    guess=None,
+    *,
+    max_steps: int = 64,
+    light: bool = False,
+    newton_derivatives: bool = False,
+    step_tolerance: float | None = None,
 ) -> BulkHelix:
     """`bulk_helix` with the two controls given by (possibly traced) indices `index` into
     `AXIAL_OBSERVABLES` and a length-4 array of `values` (entries not indexed are ignored).
 
     `light=True`: a plain `max_steps`-step Newton iteration without derivatives (small to
-    compile; for initial guesses).  `newton_derivatives=True`: that iteration, then two
+    compile; for initial guesses), stopped early once a step of the scaled unknowns is below
+    `step_tolerance` if that is given.  `newton_derivatives=True`: that iteration, then two
     Newton steps with derivatives from its (frozen) root, which give the exact first and
     second derivatives of the root (the Newton map is stationary at a root) with dense
     solves that never raise: for callers that differentiate twice or under solvers that
@@ -104,7 +114,7 @@ def bulk_helix_at(
     args = (rod, jnp.asarray(index), jnp.asarray(values, dtype), length, jnp.stack([k_scale, ell]))
     if light or newton_derivatives:
         frozen = no_gradient(args)
-        z = newton_iterations(lambda z: _bulk_residual(z, frozen), z0, max_steps)
+        z = newton_iterations(lambda z: _bulk_residual(z, frozen), z0, max_steps, tolerance=step_tolerance)
         result = RESULTS.successful
         if newton_derivatives:
             def newton_step(_, z):

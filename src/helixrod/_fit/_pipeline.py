@@ -15,7 +15,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
@@ -24,27 +23,10 @@ from .._status import RESULTS, message, promote, raise_if_failed
 from ._models import AbstractForwardModel, forward_model
 from ._parameters import Parameterisation, extra_start, resolve_fixed, start_vector
 from ._report import ErrorAnalysis, Identifiability, error_analysis
+from ._solvers import SOLVERS, make_solver
 from ._symmetry import canonical, closest_in_orbit, symmetries
 
-#: The solvers `fit_stiffness` knows by name (for the command line; or pass an optimistix
-#: least-squares solver or minimiser, e.g. `optimistix.OptaxMinimiser(optax.adam(1e-2), ...)`).
-SOLVERS = ("levenberg-marquardt", "gauss-newton", "lbfgs", "adam")
 BATCHING = ("map", "vmap")
-
-
-def make_solver(name: str, rtol: float = 1e-10, atol: float = 1e-12, learning_rate: float = 1e-2):
-    """The optimistix solver of a name in `SOLVERS`: Levenberg--Marquardt or Gauss--Newton
-    on the residuals, or optax's L-BFGS or Adam on $\\tfrac12\\sum r^2$ (through
-    `optimistix.OptaxMinimiser`; for comparison)."""
-    if name == "levenberg-marquardt":
-        return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    if name == "gauss-newton":
-        return optx.GaussNewton(rtol=rtol, atol=atol)
-    if name == "lbfgs":
-        return optx.OptaxMinimiser(optax.lbfgs(), rtol=rtol, atol=atol)
-    if name == "adam":
-        return optx.OptaxMinimiser(optax.adam(learning_rate), rtol=rtol, atol=atol)
-    raise ValueError(f"solver must be one of {SOLVERS} or an optimistix least-squares solver or minimiser, got {name!r}")
 
 
 class FitProblem(eqx.Module):

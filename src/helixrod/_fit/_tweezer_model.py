@@ -43,6 +43,9 @@ class TweezerModel(AbstractForwardModel):
     force: Array
     control: Array  # turns, or a torque where torque_controlled
     torque_controlled: Array
+    free_group: Array  # indices of the points at zero torque (free swivels)
+    torque_group: Array  # indices of the other torque-controlled points
+    turns_group: Array  # indices of the turned points
     extension: Array
     extension_sigma: Array
     force_sigma: Array | None
@@ -75,29 +78,41 @@ class TweezerModel(AbstractForwardModel):
         return own + offsets
 
     def _predict(self, rod, extra, force, control):
+        """Extension (nm, with the offsets), torque, phase and ok per point.  Three groups go
+        through `response_point` apart: free swivels (zero torque: one solve of the rod),
+        other torque-controlled points (two) and turned points (an iteration)."""
         A, P, offsets = extra[0], extra[1], extra[2:]
         _, rise = filament_and_rise(rod, self.length_per_bp)
         N = self.n_bp[self.molecule]
-        per_bp = jnp.where(self.torque_controlled, control, 2 * jnp.pi * control / N)
+        size = force.shape[0]
+        dtype = force.dtype
+        outputs = [jnp.zeros(size, dtype), jnp.zeros(size, dtype), jnp.zeros(size, jnp.int32), jnp.zeros(size, bool)]
+        groups = ((self.free_group, True, True), (self.torque_group, True, False), (self.turns_group, False, False))
+        for group, by_torque, free in groups:
+            if group.shape[0] == 0:
+                continue
 
-        def one(F, x, by_torque):
-            ext, rot, torque, phase, _, _, _, result = response_point(
-                rod, self.length_per_bp, rise, F, x, by_torque, A, P, self.kT
-            )
-            return ext, torque, phase, result
+            def one(F, x, n, by_torque=by_torque, free=free):
+                per_bp = 0.0 if free else x if by_torque else 2 * jnp.pi * x / n
+                ext, _, torque, phase, _, _, _, result = response_point(
+                    rod, self.length_per_bp, rise, F, per_bp, by_torque, A, P, self.kT
+                )
+                return n * ext, torque, phase, result == RESULTS.successful
 
-        ext, torque, phase, result = jax.vmap(one)(force, per_bp, self.torque_controlled)
-        return N * ext + offsets[self.molecule], torque, phase, result
+            values = jax.vmap(one)(force[group], control[group], N[group])
+            outputs = [full.at[group].set(part) for full, part in zip(outputs, values)]
+        extension, torque, phase, ok = outputs
+        return extension + offsets[self.molecule], torque, phase, ok
 
     def residuals(self, rod, extra):
-        extension, torque, phase, result = self._predict(rod, extra, self.force, self.control)
+        extension, torque, phase, ok = self._predict(rod, extra, self.force, self.control)
         sigma = self.extension_sigma
         if self.errors_in_variables:
             sigma = self._effective_sigma(rod, extra)
         r_extension = (extension - self.extension) / sigma
         r_torque = (torque[self.torque_points] - self.measured_torque) / self.measured_torque_sigma
         predicted = {
-            "extension": extension, "torque": torque, "phase": phase, "ok": result == RESULTS.successful,
+            "extension": extension, "torque": torque, "phase": phase, "ok": ok,
             "extension_sigma": sigma,
         }
         return jnp.concatenate([r_extension, r_torque]), predicted
@@ -150,7 +165,12 @@ class TweezerModel(AbstractForwardModel):
         if kind == "cases":
             if self.torque_points.shape[0]:
                 raise ValueError("bootstrap kind='cases' of tweezer data with measured torques is not supported; use 'parametric'")
-            idx = jax.random.randint(key, (n, size), 0, size)
+            # Resampled within each control kind, so that every point keeps its kind (the
+            # design: which points are force-distance and which are turned) and its group.
+            idx = jnp.zeros((n, size), jnp.int32)
+            for group, k in zip((self.free_group, self.torque_group, self.turns_group), jax.random.split(key, 3)):
+                if group.shape[0]:
+                    idx = idx.at[:, group].set(group[jax.random.randint(k, (n, group.shape[0]), 0, group.shape[0])])
             batch = jax.tree.map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), self)
             return eqx.tree_at(
                 lambda m: [getattr(m, f) for f in per_point if getattr(self, f) is not None],
@@ -186,6 +206,9 @@ def _(data: TweezerData, *, fit_offsets=None, errors_in_variables=None, branch=N
         force=data.force,
         control=jnp.asarray(control, dtype),
         torque_controlled=jnp.asarray(torque_controlled),
+        free_group=jnp.asarray(np.flatnonzero(torque_controlled & (control == 0)), jnp.int32),
+        torque_group=jnp.asarray(np.flatnonzero(torque_controlled & (control != 0)), jnp.int32),
+        turns_group=jnp.asarray(np.flatnonzero(~torque_controlled), jnp.int32),
         extension=data.extension,
         extension_sigma=data.extension_sigma,
         force_sigma=data.force_sigma if errors_in_variables else None,

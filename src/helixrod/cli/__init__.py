@@ -2,7 +2,9 @@
 
 `app` is the typer application (the ``helixrod`` entry point, ``python -m helixrod.cli``).
 Its callback turns on float64 (``jax_enable_x64``) once, before any command runs: every
-command computes and prints in float64.  One private module per command (`_demo`, `_sweep`,
+command computes and prints in float64; and, unless ``--no-cache``, the persistent
+compilation cache (`helixrod.enable_compilation_cache`), so that a second run of a command
+loads its compiled programs instead of compiling them again.  One private module per command (`_demo`, `_sweep`,
 `_fit`, `_force_extension`, `_tweezer_fit`); `_numbers` parses every number spec
 (comma-separated lists and ``start:stop:num`` grid axes), `_report` prints the tables of a
 fit; figures are drawn only by the plotting module (`helixrod.plot`).
@@ -23,11 +25,23 @@ app = typer.Typer(add_completion=False, help="helixrod: elastic Kirchhoff rods a
 
 
 @app.callback()
-def _main() -> None:
+def _main(
+    cache: bool = typer.Option(
+        True, "--cache/--no-cache", help="keep compiled programs on disk for later runs ($HELIXROD_CACHE_DIR, "
+        "default ~/.cache/helixrod/jax; safe to delete)"
+    ),
+) -> None:
     """helixrod command line."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    if cache:
+        from .._cache import enable_compilation_cache
+
+        try:
+            enable_compilation_cache()
+        except (OSError, ValueError) as error:  # an unwritable cache slows a run, never stops it
+            typer.echo(f"warning: no compilation cache ({error})", err=True)
 
 
 app.command()(demo)

@@ -14,7 +14,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from .. import dna, fit_stiffness
+from .. import dna, fit_stiffness, profile_likelihood
 from ..plot import plot_tweezer_fit
 from ._numbers import assignments
 
@@ -104,6 +104,19 @@ def print_tweezer_fit(console, fit, data, fixed: dict[str, float]) -> dict[str, 
     return moduli
 
 
+def print_profiles(console, fit, profiles) -> None:
+    """A rich table of profile-likelihood intervals beside the normal-approximation ones."""
+    table = Table(title="95 % intervals: profile likelihood and value +- 1.96 stderr")
+    for col in ("parameter", "value", "profile lower", "profile upper", "normal lower", "normal upper", "unit"):
+        table.add_column(col, justify="right")
+    normal = fit.interval(0.95)
+    for name, p in profiles.items():
+        lo, hi = p.interval
+        table.add_row(name, f"{float(fit.params[name]):.6g}", f"{lo:.6g}", f"{hi:.6g}", f"{normal[name][0]:.6g}",
+                      f"{normal[name][1]:.6g}", _unit(name))
+    console.print(table)
+
+
 def _fail(console, message: str):
     console.print(f"[red]error:[/red] {escape(message)}", soft_wrap=True)
     raise typer.Exit(code=2)
@@ -120,6 +133,11 @@ def tweezer_fit_command(
         "replaces this default (repeat K1=...,K13=0 to keep them)",
     ),
     fit_offsets: bool = typer.Option(True, "--fit-offsets/--no-fit-offsets", help="fit one bead-height offset per molecule"),
+    profile: list[str] = typer.Option(
+        None,
+        help="a free parameter whose 95 % profile-likelihood interval to print (repeatable; refits with it held "
+        "at 21 values over +-4 stderr; see helixrod.profile_likelihood)",
+    ),
     plot: Path = typer.Option(None, help="write the figure (plot.plot_tweezer_fit; PNG/PDF/SVG by suffix)"),
     out: Path = typer.Option(None, help="write the fit as JSON"),
 ) -> None:
@@ -133,6 +151,9 @@ def tweezer_fit_command(
         fixed = parse_fix(fix)
     except FixError as error:
         _fail(console, str(error))
+    for name in profile or ():
+        if name in fixed:
+            _fail(console, f"--profile {name}: that parameter is held fixed (--fix); profile a free one")
     if n_bp is not None and not (math.isfinite(n_bp) and n_bp > 0):
         _fail(console, f"--n-bp must be a positive number of base pairs, got {n_bp:g}")
     if not data.is_file():
@@ -157,9 +178,16 @@ def tweezer_fit_command(
         soft_wrap=True,
     )
     moduli = print_tweezer_fit(console, fit, observations, fixed)
+    unknown = [name for name in profile or () if name not in fit.names]
+    if unknown:
+        _fail(console, f"--profile {', '.join(unknown)}: not a free parameter of the fit; free: {', '.join(fit.names)}")
+    profiles = {name: profile_likelihood(fit, name) for name in profile or ()}
+    if profiles:
+        print_profiles(console, fit, profiles)
     if out is not None:
         summary = fit.to_dict()
         summary["moduli"] = {name: {"value": v, "stderr": e} for name, (v, e) in moduli.items()}
+        summary["profile_intervals"] = {name: [float(x) for x in p.interval] for name, p in profiles.items()}
         summary["fixed"] = fixed
         summary["data"] = str(data)
         out.write_text(json.dumps(summary, indent=2))

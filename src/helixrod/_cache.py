@@ -1,0 +1,48 @@
+"""The persistent compilation cache: XLA programs compiled once are kept on disk and loaded
+by later processes instead of compiled again.
+
+helixrod's first calls are dominated by XLA compilation (tens of seconds for a fit on 2
+cores); JAX's persistent cache stores the compiled executables keyed by the program, the
+backend and the JAX version, so a second process that runs the same call loads them.  JAX
+does not store executables that contain host callbacks, so a program with a raising
+runtime check (`equinox.error_if`) is compiled again in every process.  The cache is a
+directory of files that is safe to delete at any time.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import jax
+
+#: Environment variable naming the cache directory (overrides the per-user default).
+CACHE_ENVIRONMENT_VARIABLE = "HELIXROD_CACHE_DIR"
+
+
+def default_cache_directory() -> Path:
+    """`$HELIXROD_CACHE_DIR` if set, else `$XDG_CACHE_HOME/helixrod/jax` (`~/.cache/helixrod/jax`
+    without XDG_CACHE_HOME)."""
+    if os.environ.get(CACHE_ENVIRONMENT_VARIABLE):
+        return Path(os.environ[CACHE_ENVIRONMENT_VARIABLE]).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base).expanduser() / "helixrod" / "jax"
+
+
+def enable_compilation_cache(path: str | os.PathLike | None = None, *, min_compile_seconds: float = 0.2) -> Path:
+    """Turn on JAX's persistent compilation cache in `path` (default
+    `default_cache_directory()`, created if missing) for every program that took at least
+    `min_compile_seconds` to compile; returns the directory.  This changes global JAX
+    configuration (`jax_compilation_cache_dir` and the cache thresholds) for the whole
+    process, which helixrod otherwise never does: the command line calls it, a library user
+    opts in.  Call it before the first compilation you want cached."""
+    directory = default_cache_directory() if path is None else Path(path).expanduser()
+    if directory.exists() and not directory.is_dir():
+        raise ValueError(f"enable_compilation_cache: {directory} exists and is not a directory")
+    if not (min_compile_seconds >= 0):
+        raise ValueError(f"enable_compilation_cache: min_compile_seconds must be >= 0, got {min_compile_seconds}")
+    directory.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(directory))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_seconds))
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return directory

@@ -43,9 +43,6 @@ class TweezerModel(AbstractForwardModel):
     force: Array
     control: Array  # turns, or a torque where torque_controlled
     torque_controlled: Array
-    free_group: Array  # indices of the points at zero torque (free swivels)
-    torque_group: Array  # indices of the other torque-controlled points
-    turns_group: Array  # indices of the turned points
     extension: Array
     extension_sigma: Array
     force_sigma: Array | None
@@ -58,6 +55,7 @@ class TweezerModel(AbstractForwardModel):
     kT: Array
     length_per_bp: Array
     molecule_names: tuple[str, ...] = eqx.field(static=True)
+    control_kind: str = eqx.field(static=True)  # "free" (zero torque), "torque", "turns" or "mixed"
     fit_offsets: bool = eqx.field(static=True)
     plectonemes_free: bool = eqx.field(static=True)
     errors_in_variables: bool = eqx.field(static=True)
@@ -78,30 +76,31 @@ class TweezerModel(AbstractForwardModel):
         return own + offsets
 
     def _predict(self, rod, extra, force, control):
-        """Extension (nm, with the offsets), torque, phase and ok per point.  Three groups go
-        through `response_point` apart: free swivels (zero torque: one solve of the rod),
-        other torque-controlled points (two) and turned points (an iteration)."""
+        """Extension (nm, with the offsets), torque, phase and ok per point.  Data of one
+        `control_kind` pass it to `response_point` as a Python constant (free swivels: one
+        solve of the rod per point; turned points: the iteration); mixed data trace it per
+        point, one program for all (two specialised ones would compile twice as long and,
+        measured, run no faster)."""
         A, P, offsets = extra[0], extra[1], extra[2:]
         _, rise = filament_and_rise(rod, self.length_per_bp)
         N = self.n_bp[self.molecule]
-        size = force.shape[0]
-        dtype = force.dtype
-        outputs = [jnp.zeros(size, dtype), jnp.zeros(size, dtype), jnp.zeros(size, jnp.int32), jnp.zeros(size, bool)]
-        groups = ((self.free_group, True, True), (self.torque_group, True, False), (self.turns_group, False, False))
-        for group, by_torque, free in groups:
-            if group.shape[0] == 0:
-                continue
+        kind = self.control_kind
 
-            def one(F, x, n, by_torque=by_torque, free=free):
-                per_bp = 0.0 if free else x if by_torque else 2 * jnp.pi * x / n
-                ext, _, torque, phase, _, _, _, result = response_point(
-                    rod, self.length_per_bp, rise, F, per_bp, by_torque, A, P, self.kT
-                )
-                return n * ext, torque, phase, result == RESULTS.successful
+        def one(F, x, n, by_torque):
+            if kind == "free":
+                per_bp, by_torque = 0.0, True
+            elif kind == "torque":
+                per_bp, by_torque = x, True
+            elif kind == "turns":
+                per_bp, by_torque = 2 * jnp.pi * x / n, False
+            else:
+                per_bp = jnp.where(by_torque, x, 2 * jnp.pi * x / n)
+            ext, _, torque, phase, _, _, _, result = response_point(
+                rod, self.length_per_bp, rise, F, per_bp, by_torque, A, P, self.kT
+            )
+            return n * ext, torque, phase, result == RESULTS.successful
 
-            values = jax.vmap(one)(force[group], control[group], N[group])
-            outputs = [full.at[group].set(part) for full, part in zip(outputs, values)]
-        extension, torque, phase, ok = outputs
+        extension, torque, phase, ok = jax.vmap(one)(force, control, N, self.torque_controlled)
         return extension + offsets[self.molecule], torque, phase, ok
 
     def residuals(self, rod, extra):
@@ -165,12 +164,7 @@ class TweezerModel(AbstractForwardModel):
         if kind == "cases":
             if self.torque_points.shape[0]:
                 raise ValueError("bootstrap kind='cases' of tweezer data with measured torques is not supported; use 'parametric'")
-            # Resampled within each control kind, so that every point keeps its kind (the
-            # design: which points are force-distance and which are turned) and its group.
-            idx = jnp.zeros((n, size), jnp.int32)
-            for group, k in zip((self.free_group, self.torque_group, self.turns_group), jax.random.split(key, 3)):
-                if group.shape[0]:
-                    idx = idx.at[:, group].set(group[jax.random.randint(k, (n, group.shape[0]), 0, group.shape[0])])
+            idx = jax.random.randint(key, (n, size), 0, size)
             batch = jax.tree.map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), self)
             return eqx.tree_at(
                 lambda m: [getattr(m, f) for f in per_point if getattr(self, f) is not None],
@@ -184,6 +178,12 @@ class TweezerModel(AbstractForwardModel):
             kt, (n, self.torque_points.shape[0])
         )
         return eqx.tree_at(lambda m: (m.extension, m.measured_torque), batch, (extension, torque))
+
+
+def _control_kind(torque_controlled, control) -> str:
+    if torque_controlled.all():
+        return "free" if not np.any(control) else "torque"
+    return "turns" if not torque_controlled.any() else "mixed"
 
 
 @forward_model.register
@@ -206,9 +206,6 @@ def _(data: TweezerData, *, fit_offsets=None, errors_in_variables=None, branch=N
         force=data.force,
         control=jnp.asarray(control, dtype),
         torque_controlled=jnp.asarray(torque_controlled),
-        free_group=jnp.asarray(np.flatnonzero(torque_controlled & (control == 0)), jnp.int32),
-        torque_group=jnp.asarray(np.flatnonzero(torque_controlled & (control != 0)), jnp.int32),
-        turns_group=jnp.asarray(np.flatnonzero(~torque_controlled), jnp.int32),
         extension=data.extension,
         extension_sigma=data.extension_sigma,
         force_sigma=data.force_sigma if errors_in_variables else None,
@@ -221,6 +218,7 @@ def _(data: TweezerData, *, fit_offsets=None, errors_in_variables=None, branch=N
         kT=thermal_energy(data.temperature),
         length_per_bp=jnp.asarray(helix_from_bdna()[2], dtype),
         molecule_names=tuple(data.molecule_names),
+        control_kind=_control_kind(torque_controlled, control),
         fit_offsets=bool(fit_offsets),
         plectonemes_free=bool(turned.any()),
         errors_in_variables=bool(errors_in_variables),

@@ -50,3 +50,16 @@ def test_material_constructors():
 def test_uhat_shape_error():
     with pytest.raises(ValueError, match="trailing axis of length 3"):
         hr.Rod(1.0, 1.0, 1.0, uhat=(1.0, 2.0))
+
+
+def test_a_rod_of_constants_inside_jit_is_checked_while_tracing():
+    """Numbers inside a jitted function are checked in Python (a ValueError at trace time),
+    and the program carries no runtime check: no host callback, which would keep it out of
+    the persistent compilation cache.  Traced stiffnesses keep the runtime check."""
+    x = jnp.ones(3)
+    text = jax.jit(lambda u: hr.Rod(1.0, 1.5, 0.8, K13=0.1).energy(u)).lower(x).as_text()
+    assert "callback" not in text
+    with pytest.raises(ValueError, match="positive definite"):
+        jax.jit(lambda u: hr.Rod(-1.0, 1.0, 1.0).energy(u))(x)
+    traced = jax.jit(lambda K1, u: hr.Rod(K1, 1.5, 0.8).energy(u)).lower(1.0, x).as_text()
+    assert "callback" in traced

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import functools
 import math
 
@@ -86,36 +88,41 @@ class Rod(eqx.Module):
         K23: ArrayLike = 0.0,
         uhat: ArrayLike = (0.0, 0.0, 0.0),
     ):
-        dtype = jnp.result_type(float)
-        K1, K2, K3, K13, K23 = (jnp.asarray(k, dtype=dtype) for k in (K1, K2, K3, K13, K23))
-        uhat = jnp.asarray(uhat, dtype=dtype)
-        if uhat.ndim == 0 or uhat.shape[-1] != 3:
-            raise ValueError(f"Rod: uhat must have a trailing axis of length 3, got shape {uhat.shape}")
-        shapes = {k.shape for k in (K1, K2, K3, K13, K23)}
-        shapes.add(uhat.shape[:-1])
-        try:
-            batch = jnp.broadcast_shapes(*shapes)
-        except ValueError:
-            raise ValueError(f"Rod: stiffness and uhat batch shapes do not broadcast: {sorted(shapes)}") from None
-        K1, K2, K3, K13, K23 = (jnp.broadcast_to(k, batch) for k in (K1, K2, K3, K13, K23))
-        uhat = jnp.broadcast_to(uhat, batch + (3,))
-        ok = _positive_definite(K1, K2, K3, K13, K23, uhat)
-        message = (
-            "Rod: stiffness must be finite and positive definite "
-            "(K1 > 0, K2 > 0, K3 - K13**2/K1 - K23**2/K2 > 0) and uhat finite"
-        )
-        if is_concrete(K1, K2, K3, K13, K23, uhat):
-            bad = ~np.asarray(ok)
-            if bad.any():
-                where = "" if bad.ndim == 0 else f" (bad entries at batch indices {np.argwhere(bad)[:5].tolist()})"
-                raise ValueError(
-                    message
-                    + where
-                    + f"; got K1={np.asarray(K1)}, K2={np.asarray(K2)}, K3={np.asarray(K3)}, "
-                    f"K13={np.asarray(K13)}, K23={np.asarray(K23)}, uhat={np.asarray(uhat)}"
-                )
-        else:
-            K1 = eqx.error_if(K1, ~ok, message)
+        # Constant inputs (also inside a trace: a rod built from numbers in a jitted function)
+        # are checked now, in Python; only traced ones get a runtime check, whose host
+        # callback keeps a program out of the persistent compilation cache.
+        concrete = is_concrete(K1, K2, K3, K13, K23, uhat)
+        with jax.ensure_compile_time_eval() if concrete else contextlib.nullcontext():
+            dtype = jnp.result_type(float)
+            K1, K2, K3, K13, K23 = (jnp.asarray(k, dtype=dtype) for k in (K1, K2, K3, K13, K23))
+            uhat = jnp.asarray(uhat, dtype=dtype)
+            if uhat.ndim == 0 or uhat.shape[-1] != 3:
+                raise ValueError(f"Rod: uhat must have a trailing axis of length 3, got shape {uhat.shape}")
+            shapes = {k.shape for k in (K1, K2, K3, K13, K23)}
+            shapes.add(uhat.shape[:-1])
+            try:
+                batch = jnp.broadcast_shapes(*shapes)
+            except ValueError:
+                raise ValueError(f"Rod: stiffness and uhat batch shapes do not broadcast: {sorted(shapes)}") from None
+            K1, K2, K3, K13, K23 = (jnp.broadcast_to(k, batch) for k in (K1, K2, K3, K13, K23))
+            uhat = jnp.broadcast_to(uhat, batch + (3,))
+            ok = _positive_definite(K1, K2, K3, K13, K23, uhat)
+            message = (
+                "Rod: stiffness must be finite and positive definite "
+                "(K1 > 0, K2 > 0, K3 - K13**2/K1 - K23**2/K2 > 0) and uhat finite"
+            )
+            if concrete:
+                bad = ~np.asarray(ok)
+                if bad.any():
+                    where = "" if bad.ndim == 0 else f" (bad entries at batch indices {np.argwhere(bad)[:5].tolist()})"
+                    raise ValueError(
+                        message
+                        + where
+                        + f"; got K1={np.asarray(K1)}, K2={np.asarray(K2)}, K3={np.asarray(K3)}, "
+                        f"K13={np.asarray(K13)}, K23={np.asarray(K23)}, uhat={np.asarray(uhat)}"
+                    )
+            else:
+                K1 = eqx.error_if(K1, ~ok, message)
         self.K1, self.K2, self.K3, self.K13, self.K23, self.uhat = K1, K2, K3, K13, K23, uhat
 
     # -- constitutive law ---------------------------------------------------------------

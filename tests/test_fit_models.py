@@ -105,3 +105,33 @@ def test_data_types_and_options_of_the_models():
         hr.fit_stiffness(helix, use_register=True)
     with pytest.raises(ValueError, match="errors_in_variables=True needs kappa_sigma"):
         hr.fit_stiffness(helix, errors_in_variables=True)
+
+
+def test_summary_save_and_load(noisy, tmp_path):
+    """`repr(fit)` is the summary table; `save` / `StiffnessFit.load` round-trip every value
+    of it through JSON; a file that is not a saved fit is a named error."""
+    _, data, fit = noisy
+    text = fit.summary()
+    assert repr(fit) == text and text.startswith("StiffnessFit (levenberg-marquardt): converged")
+    for name in fit.names:
+        assert f"{float(fit.params[name]):.7g}" in text and f"{float(fit.stderr[name]):.4g}" in text
+    assert f"AIC {fit.aic:.6g}" in text and f"reduced chi2 {float(fit.chi2_reduced):.4g}" in text
+    path = tmp_path / "fit.json"
+    fit.save(path)
+    back = hr.StiffnessFit.load(path)
+    assert back.summary() == text and back.names == fit.names and back.ok and back.problem is None
+    np.testing.assert_array_equal(back.covariance, fit.covariance)
+    np.testing.assert_array_equal(back.residuals, fit.residuals)
+    np.testing.assert_array_equal(back.predicted["force"], fit.predicted["force"])
+    assert back.identifiability.to_dict() == fit.identifiability.to_dict()
+    assert repr(back.rod) == repr(fit.rod) and (back.aic, back.bic) == (fit.aic, fit.bic)
+    with pytest.raises(ValueError, match="propagate needs a fit from fit_stiffness"):
+        back.propagate(lambda rod, p: rod.K1)
+    (tmp_path / "other.json").write_text('{"a": 1}')
+    with pytest.raises(ValueError, match="not a fit written by StiffnessFit.save"):
+        hr.StiffnessFit.load(tmp_path / "other.json")
+    (tmp_path / "broken.json").write_text("{")
+    with pytest.raises(ValueError, match="is not JSON"):
+        hr.StiffnessFit.load(tmp_path / "broken.json")
+    # The data print their size and ranges, not array shapes.
+    assert repr(data).startswith(f"HelixData({len(data)} points: force ") and "sigmas of force, moment" in repr(data)

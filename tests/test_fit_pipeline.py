@@ -49,6 +49,7 @@ def test_cli_fit_example(tmp_path):
     for name, value in truth.items():  # 1% noise: within 5 standard errors
         assert abs(summary["params"][name] - value) <= 5 * summary["stderr"][name]
     assert png.stat().st_size > 10_000
+    assert hr.StiffnessFit.load(out).summary().startswith("StiffnessFit (levenberg-marquardt): converged")
     bad = CliRunner().invoke(app, ["fit", str(example_data_path()), "--uhat", "1,0"])
     assert bad.exit_code != 0
 

@@ -63,3 +63,13 @@ def test_a_rod_of_constants_inside_jit_is_checked_while_tracing():
         jax.jit(lambda u: hr.Rod(-1.0, 1.0, 1.0).energy(u))(x)
     traced = jax.jit(lambda K1, u: hr.Rod(K1, 1.5, 0.8).energy(u)).lower(1.0, x).as_text()
     assert "callback" in traced
+
+
+def test_repr_shows_the_values():
+    assert repr(hr.Rod(1.0, 1.5, 0.8, K13=0.5, uhat=(1.0, 0.0, 0.25))) == (
+        "Rod(K1=1, K2=1.5, K3=0.8, K13=0.5, K23=0, uhat=(1, 0, 0.25))"
+    )
+    batch = repr(hr.Rod(jnp.array([1.0, 2.0]), 3.0, 1.5))
+    assert batch.startswith("Rod(batch (2,), K1=[1., 2.], K2=[3., 3.]") and "\n" not in batch
+    traced = jax.jit(lambda k: jnp.asarray(len(repr(hr.Rod(k, 3.0, 1.5)))))(1.0)
+    assert int(traced) > 0  # under jit: equinox's shapes-and-dtypes form, no error

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+import helixrod as hr
 from helixrod import dna, plot
 from helixrod.cli import app
 from helixrod.cli._tweezer_fit import default_fix, fit_tweezer_data, parse_fix
@@ -181,6 +182,7 @@ def test_cli_tweezer_fit_on_a_subset(example, tmp_path):
     assert 30 < summary["params"]["persistence_length"] < 70
     assert (tmp_path / "fit.png").stat().st_size > 10_000
     assert subset.n_points == 22 and summary["profile_intervals"] == {}
+    assert hr.StiffnessFit.load(tmp_path / "fit.json").params.keys() == summary["params"].keys()  # a saved fit
 
 
 @pytest.mark.slow

@@ -125,6 +125,18 @@ class Rod(eqx.Module):
                 K1 = eqx.error_if(K1, ~ok, message)
         self.K1, self.K2, self.K3, self.K13, self.K23, self.uhat = K1, K2, K3, K13, K23, uhat
 
+    def __repr__(self) -> str:
+        leaves = (self.K1, self.K2, self.K3, self.K13, self.K23, self.uhat)
+        if not is_concrete(*leaves):
+            return eqx.tree_pformat(self)  # traced: shapes and dtypes only
+        if self.K1.ndim == 0:
+            stiffness = ", ".join(f"{n}={float(v):.6g}" for n, v in zip(("K1", "K2", "K3", "K13", "K23"), leaves))
+            uhat = ", ".join(f"{float(x):.6g}" for x in np.asarray(self.uhat))
+            return f"Rod({stiffness}, uhat=({uhat}))"
+        show = lambda x: np.array2string(np.asarray(x), precision=6, separator=", ", threshold=6, edgeitems=2).replace("\n", "")
+        fields = ", ".join(f"{n}={show(v)}" for n, v in zip(("K1", "K2", "K3", "K13", "K23", "uhat"), leaves))
+        return f"Rod(batch {tuple(self.K1.shape)}, {fields})"
+
     # -- constitutive law ---------------------------------------------------------------
     @property
     def K(self) -> Float[Array, "*batch 3 3"]:

@@ -53,6 +53,23 @@ def message(result) -> str:
     return RESULTS[result]
 
 
+def result_name(result) -> str:
+    """The name of a concrete scalar code (`"successful"`, `"max_steps_reached"`, ...), as
+    saved files record it."""
+    for name, item in RESULTS._name_to_item.items():
+        if bool(item == result):
+            return name
+    raise ValueError(f"not a RESULTS code: {result!r}")
+
+
+def result_from_name(name: str) -> RESULTS:
+    """The code of a name given by `result_name`."""
+    try:
+        return RESULTS._name_to_item[name]
+    except KeyError:
+        raise ValueError(f"unknown result code {name!r}; known: {', '.join(RESULTS._name_to_item)}") from None
+
+
 def raise_if_failed(tree, result, what: str, hint: str = ""):
     """The `throw=True` behaviour: `tree` unchanged if every code in `result` is successful.
 

@@ -27,6 +27,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._equilibria import helix_equilibria
+from .._misc import is_concrete
 from .._rod import Rod
 
 #: Column order of the CSV form; the first four are required.
@@ -187,6 +188,21 @@ class HelixData(eqx.Module):
     def size(self) -> int:
         """Number of data points."""
         return len(self)
+
+    def __repr__(self) -> str:
+        columns = ("force", "moment", "kappa", "tau", "register")
+        if not is_concrete(*(getattr(self, c) for c in columns)):
+            return eqx.tree_pformat(self)
+        units = self.units
+
+        def span(name):
+            values = np.asarray(getattr(self, name))
+            unit = f" {units[name]}" if name in units else ""
+            return f"{name} {np.nanmin(values):.4g}..{np.nanmax(values):.4g}{unit}" if values.size else f"{name} -"
+
+        present = [c for c in columns if getattr(self, c) is not None]
+        sigmas = [c for c in ("force", "moment", "kappa", "tau", "register") if getattr(self, f"{c}_sigma") is not None]
+        return f"HelixData({len(self)} points: {', '.join(span(c) for c in present)}; sigmas of {', '.join(sigmas)})"
 
     # -- CSV ----------------------------------------------------------------------------
     @classmethod

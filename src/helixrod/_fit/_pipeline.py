@@ -8,7 +8,9 @@ analysis -> `StiffnessFit`.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
+from pathlib import Path
 from statistics import NormalDist
 
 import equinox as eqx
@@ -18,8 +20,9 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
+from .._misc import is_concrete, write_atomically
 from .._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
-from .._status import RESULTS, message, promote, raise_if_failed
+from .._status import RESULTS, message, promote, raise_if_failed, result_from_name, result_name
 from ._models import AbstractForwardModel, forward_model
 from ._parameters import Parameterisation, extra_start, resolve_fixed, start_vector
 from ._report import ErrorAnalysis, Identifiability, error_analysis
@@ -27,6 +30,8 @@ from ._solvers import SOLVERS, make_solver
 from ._symmetry import canonical, closest_in_orbit, symmetries
 
 BATCHING = ("map", "vmap")
+#: The `format` entry of the JSON files of `StiffnessFit.save`.
+SAVE_FORMAT = "helixrod.StiffnessFit/1"
 
 
 class FitProblem(eqx.Module):
@@ -155,6 +160,86 @@ class StiffnessFit(eqx.Module):
         """Normal-approximation confidence intervals value ± z stderr, by name."""
         z = NormalDist().inv_cdf(0.5 + level / 2)
         return {n: (float(self.params[n] - z * self.stderr[n]), float(self.params[n] + z * self.stderr[n])) for n in self.names}
+
+    def summary(self) -> str:
+        """A plain-text report: convergence, each free parameter with its standard error,
+        the fit's quality (cost, reduced chi2, AIC, BIC), the weakly determined directions,
+        symmetries and notes (also `repr(fit)`)."""
+        if not is_concrete(self.cost, self.params):
+            return eqx.tree_pformat(self)
+        lines = [
+            f"StiffnessFit ({self.method}): {self.message}; {int(self.n_steps)} steps, "
+            f"{int(self.n_agree)} of {int(self.n_starts)} starts at the best minimum"
+        ]
+        width = max([9, *(len(n) for n in self.names)])
+        lines.append(f"  {'parameter':<{width}}  {'value':>13}  {'stderr':>11}")
+        for name in self.names:
+            lines.append(f"  {name:<{width}}  {float(self.params[name]):>13.7g}  {float(self.stderr[name]):>11.4g}")
+        lines.append(
+            f"cost {float(self.cost):.6g} ({self.n_residuals} residuals, {len(self.names)} free parameters), "
+            f"reduced chi2 {float(self.chi2_reduced):.4g}, AIC {self.aic:.6g}, BIC {self.bic:.6g}"
+            + ("" if self.absolute_sigma else " (sigmas scaled by the fit)")
+        )
+        ident = self.identifiability
+        for w, e in zip(ident.weak, ident.weak_stderr):
+            combo = " ".join(f"{c:+.3f}*{n}" for n, c in w)
+            lines.append(f"weakly determined: {combo} (scaled stderr {e:.3g})")
+        lines += [f"symmetry: {x}" for x in ident.symmetries] + [f"note: {x}" for x in ident.notes]
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return self.summary()
+
+    def save(self, path, extra: Mapping | None = None) -> None:
+        """Write the fit as JSON (no pickles), atomically: `to_dict` plus the residuals,
+        predictions, start costs and result code, everything `StiffnessFit.load` needs, and
+        the JSON-serialisable entries of `extra` beside them (e.g. what the command line
+        derived from the fit; `load` ignores them).  The fit problem (model, data, solver)
+        is not saved: a loaded fit has no `propagate`, `profile_likelihood` or `bootstrap`."""
+        record = {"format": SAVE_FORMAT, **self.to_dict()}
+        clash = sorted(set(extra or {}) & (set(record) | {"result", "residuals", "predicted", "start_costs"}))
+        if clash:
+            raise ValueError(f"StiffnessFit.save: extra entries {clash} would overwrite the fit's own")
+        record["result"] = result_name(self.result)
+        record["residuals"] = np.asarray(self.residuals).tolist()
+        record["predicted"] = {k: np.asarray(v).tolist() for k, v in self.predicted.items()}
+        record["start_costs"] = np.asarray(self.start_costs).tolist()
+        record.update(extra or {})
+        text = json.dumps(record, indent=1)
+        write_atomically(path, lambda f: f.write(text), binary=False)
+
+    @classmethod
+    def load(cls, path) -> StiffnessFit:
+        """A fit written by `save`."""
+        try:
+            record = json.loads(Path(path).read_text())
+        except json.JSONDecodeError as error:
+            raise ValueError(f"StiffnessFit.load: {path} is not JSON ({error})") from None
+        if not isinstance(record, dict) or record.get("format") != SAVE_FORMAT:
+            raise ValueError(f"StiffnessFit.load: {path} is not a fit written by StiffnessFit.save (no format {SAVE_FORMAT!r})")
+        names = tuple(record["names"])
+        rod = rod_from_vector(jnp.asarray([record["rod"][n] for n in PARAMETER_NAMES]), checked=True)
+        return cls(
+            rod=rod,
+            names=names,
+            params={n: jnp.asarray(record["params"][n]) for n in names},
+            stderr={n: jnp.asarray(record["stderr"][n]) for n in names},
+            covariance=jnp.asarray(record["covariance"], float).reshape(len(names), len(names)),
+            correlation=jnp.asarray(record["correlation"], float).reshape(len(names), len(names)),
+            cost=jnp.asarray(record["cost"]),
+            chi2_reduced=jnp.asarray(record["chi2_reduced"]),
+            residuals=jnp.asarray(record["residuals"], float),
+            predicted={k: jnp.asarray(v) for k, v in record["predicted"].items()},
+            result=result_from_name(record["result"]),
+            n_steps=int(record["n_steps"]),
+            n_starts=int(record["n_starts"]),
+            n_agree=int(record["n_agree"]),
+            start_costs=jnp.asarray(record["start_costs"], float),
+            identifiability=Identifiability.from_dict(names, record["identifiability"]),
+            method=record["method"],
+            absolute_sigma=bool(record["absolute_sigma"]),
+            problem=None,
+        )
 
     def to_dict(self) -> dict:
         """Plain-Python summary (JSON-serialisable)."""

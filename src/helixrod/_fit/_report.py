@@ -48,9 +48,26 @@ class Identifiability(eqx.Module):
             "rank": int(self.rank),
             "weak": [dict(w) for w in self.weak],
             "weak_stderr": list(self.weak_stderr),
+            "weak_threshold": float(self.weak_threshold),
             "symmetries": list(self.symmetries),
             "notes": list(self.notes),
         }
+
+    @classmethod
+    def from_dict(cls, names, d: dict, weak_threshold: float = 0.1) -> Identifiability:
+        """The report of `to_dict` back (for a saved fit)."""
+        return cls(
+            names=tuple(names),
+            scales=jnp.asarray(d["scales"], float),
+            singular_values=jnp.asarray(d["singular_values"], float),
+            condition_number=float(d["condition_number"]),
+            rank=int(d["rank"]),
+            weak=tuple(tuple(w.items()) for w in d["weak"]),
+            weak_stderr=tuple(float(e) for e in d["weak_stderr"]),
+            weak_threshold=float(d.get("weak_threshold", weak_threshold)),
+            symmetries=tuple(d["symmetries"]),
+            notes=tuple(d["notes"]),
+        )
 
 
 class ErrorAnalysis(eqx.Module):

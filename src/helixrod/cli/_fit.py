@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import jax
@@ -55,7 +54,7 @@ def fit(
     console.print(f"{len(observations)} helices from {data}")
     print_fit(console, result)
     if out is not None:
-        out.write_text(json.dumps(result.to_dict(), indent=2))
+        result.save(out)
         console.print(f"wrote {out}")
     if plot is not None:
         plot_fit(observations, result, plot)

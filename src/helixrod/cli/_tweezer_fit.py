@@ -3,7 +3,6 @@ tweezer curves (a `TweezerData` CSV file)."""
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -185,12 +184,12 @@ def tweezer_fit_command(
     if profiles:
         print_profiles(console, fit, profiles)
     if out is not None:
-        summary = fit.to_dict()
-        summary["moduli"] = {name: {"value": v, "stderr": e} for name, (v, e) in moduli.items()}
-        summary["profile_intervals"] = {name: [float(x) for x in p.interval] for name, p in profiles.items()}
-        summary["fixed"] = fixed
-        summary["data"] = str(data)
-        out.write_text(json.dumps(summary, indent=2))
+        fit.save(out, {
+            "moduli": {name: {"value": v, "stderr": e} for name, (v, e) in moduli.items()},
+            "profile_intervals": {name: [float(x) for x in p.interval] for name, p in profiles.items()},
+            "fixed": fixed,
+            "data": str(data),
+        })
         console.print(f"wrote {escape(str(out))}")
     if plot is not None:
         plot_tweezer_fit(fit, observations, plot)

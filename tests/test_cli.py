@@ -47,3 +47,34 @@ def test_cli_sweep(tmp_path):
     assert (tmp_path / "a.png").stat().st_size > 10_000
     bad = CliRunner().invoke(app, ["sweep", "--fields", "force,nope"])
     assert bad.exit_code != 0 and "valid fields" in bad.output
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["sweep", "--rod", "-1,1,1"], "--rod -1,1,1 --uhat 1,0,0: Rod: stiffness must be finite and positive definite"),
+        (["force-extension", "--rod", "1,-1,1"], "Rod: stiffness must be finite and positive definite"),
+        (["sweep", "--out", "NOFOLDER/x.npz"], "--out: the folder NOFOLDER does not exist"),
+        (["sweep", "--plot", "atlas.txt"], "--plot: cannot write a figure as .txt; use one of"),
+        (["sweep", "--out", "."], "--out: . is a folder; give a file name"),
+        (["force-extension", "--plot", "curve"], "cannot write a figure as a file without a suffix"),
+        (["fit", "missing.csv"], "DATA: no such file: missing.csv"),
+        (["fit", "EXAMPLE", "--plot", "fit.docx"], "--plot: cannot write a figure as .docx"),
+        (["demo", "--out", "AFILE"], "--out: AFILE exists and is not a folder"),
+    ],
+)
+def test_user_errors_are_usage_errors_before_any_computation(tmp_path, args, message):
+    """Exit code 2, the problem and its fix in typer's error box, no traceback -- raised
+    before anything is computed (so a long run never ends by losing its result)."""
+    from helixrod.cli import example_data_path
+
+    (tmp_path / "AFILE").write_text("")
+    args = [str(example_data_path()) if a == "EXAMPLE" else a for a in args]
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(tmp_path)
+        result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2, result.output
+    text = " ".join(result.output.replace("│", " ").split())
+    assert message in text, text
+    assert "Traceback" not in result.output and isinstance(result.exception, SystemExit)
+    assert "wrote" not in text and sorted(p.name for p in tmp_path.iterdir()) == ["AFILE"]

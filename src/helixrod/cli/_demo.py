@@ -13,6 +13,7 @@ from rich.table import Table
 from .. import HelixData, Rod, dna, fit_stiffness, helix_equilibria
 from ..plot import plot_fit, plot_hyperboloid, plot_rod_atlas, plot_tweezer_fit
 from ._fit import example_data_path
+from ._paths import output_folder
 from ._report import print_fit
 from ._tweezer_fit import default_fix, fit_tweezer_data, print_tweezer_fit
 
@@ -50,7 +51,7 @@ def demo(
     console.print("F, M: axial force and moment; n3: tension; W: energy density; slot 0 is the global minimum of W on the circle.")
     counts = np.asarray(eq.count)
     console.print(f"registers per helix: {dict(zip([f'{k:g},{t:g}' for k, t in points], counts.tolist()))}")
-    out.mkdir(parents=True, exist_ok=True)
+    output_folder(out, "--out")
     path = plot_hyperboloid(rod, out / "hyperboloid.png", u3_slice=1.5, radii=(1.0, 3.0), extent=4.0)
     console.print(f"wrote {path}")
     path = plot_rod_atlas(rod, out / "atlas.png", n=161)

@@ -11,6 +11,7 @@ from rich.console import Console
 from .. import HelixData, fit_stiffness
 from ..plot import plot_fit
 from ._numbers import assignments, numbers
+from ._paths import input_file, output_file
 from ._report import print_fit
 
 
@@ -35,6 +36,9 @@ def fit(
     """Fit K1, K2, K3, K13, K23 (and uhat) to measured helices (the inverse spring problem)."""
     console = Console()
     fixed = assignments(fix, "--fix")
+    input_file(data, "DATA")
+    output_file(out, "--out")
+    output_file(plot, "--plot", figure=True)
     try:
         observations = HelixData.from_csv(data)
         result = fit_stiffness(

@@ -12,9 +12,11 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from .. import Rod, force_extension
+from .. import force_extension
 from ..plot import plot_response
-from ._numbers import grid, numbers
+from .._misc import write_atomically
+from ._numbers import grid, rod_option
+from ._paths import output_file
 
 #: The curve's fields written by ``--out`` (with the rod's ``length``).
 CURVE_FIELDS = ("force", "moment", "extension", "rotation", "bulk_force", "bulk_moment", "bulk_extension", "bulk_rotation", "ok")
@@ -35,8 +37,10 @@ def force_extension_command(
 ) -> None:
     """Force-extension curve of a finite clamped rod against the uniform-helix (bulk) formula."""
     console = Console()
-    K = numbers(rod, "--rod", (3, 5))
-    u = numbers(uhat, "--uhat", 3)
+    the_rod = rod_option(rod, uhat)
+    output_file(out, "--out")
+    output_file(plot, "--plot", figure=True)
+    u = [float(x) for x in the_rod.uhat]
     norm = math.sqrt(sum(x * x for x in u))
     if norm == 0:
         raise typer.BadParameter("--uhat must not be zero: the length is given in turns of the unloaded helix")
@@ -44,10 +48,6 @@ def force_extension_command(
         raise typer.BadParameter(f"--turns must be > 0, got {turns}")
     if moment is not None and rotation is not None:
         raise typer.BadParameter("give --moment or --rotation, not both")
-    try:
-        the_rod = Rod(*K, uhat=u)
-    except ValueError as error:
-        raise typer.BadParameter(str(error)) from None
     length = turns * 2 * math.pi / norm
     force_values = grid(forces, "--forces")
     held = {"moment": moment} if moment is not None else {"rotation": length * norm + (rotation or 0.0)}
@@ -72,7 +72,8 @@ def force_extension_command(
     console.print(f"{force_values.size} points in {seconds:.2f} s (compilation included); "
                   f"{int(np.sum(~np.asarray(curve.ok)))} did not converge")
     if out is not None:
-        out.write_text(json.dumps({"length": length, **{f: np.asarray(getattr(curve, f)).tolist() for f in CURVE_FIELDS}}, indent=1))
+        text = json.dumps({"length": length, **{f: np.asarray(getattr(curve, f)).tolist() for f in CURVE_FIELDS}}, indent=1)
+        write_atomically(out, lambda f: f.write(text), binary=False)
         console.print(f"wrote {out}")
     if plot is not None:
         plot_response(curve, plot)

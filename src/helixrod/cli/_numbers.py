@@ -4,7 +4,7 @@ Three kinds of spec: named values ``NAME=VALUE[,NAME=VALUE...]`` (`assignments`:
 K13=0,K23=0``), comma-separated numbers, a required count of them (`numbers`: ``--rod
 1,1.5,0.8[,0.5,0.5]`` takes 3 or 5, ``--uhat u1,u2,u3`` takes 3), and a grid axis
 ``start:stop:num`` (`grid`: ``--kappa 0:3:1000``, ``--forces 0:0.05:21``), ``num`` points
-from ``start`` to ``stop`` inclusive.  A bad spec raises `typer.BadParameter` naming the
+from ``start`` to ``stop`` inclusive; and the rod of ``--rod`` and ``--uhat`` (`rod_option`).  A bad spec raises `typer.BadParameter` naming the
 option (exit code 2, the message in typer's error box).
 """
 
@@ -25,6 +25,19 @@ def numbers(text: str, name: str, count: int | tuple[int, ...]) -> list[float]:
     if len(values) not in sizes:
         raise typer.BadParameter(f"{name} takes {' or '.join(map(str, sizes))} numbers, got {len(values)}")
     return values
+
+
+def rod_option(rod_text: str, uhat_text: str):
+    """The `Rod` of ``--rod K1,K2,K3[,K13,K23]`` and ``--uhat u1,u2,u3``; a stiffness that is not
+    positive definite is a usage error naming ``--rod``."""
+    from .. import Rod
+
+    stiffness = numbers(rod_text, "--rod", (3, 5))
+    uhat = numbers(uhat_text, "--uhat", 3)
+    try:
+        return Rod(*stiffness, uhat=uhat)
+    except ValueError as error:
+        raise typer.BadParameter(f"--rod {rod_text} --uhat {uhat_text}: {error}") from None
 
 
 def grid(text: str, name: str) -> np.ndarray:

@@ -10,10 +10,11 @@ import numpy as np
 import typer
 from rich.console import Console
 
-from .. import Rod, save_sweep, sweep
+from .. import save_sweep, sweep
 from .._plot import SUMMARY_FIELDS
 from ..plot import plot_sweep_summary
-from ._numbers import grid, numbers
+from ._numbers import grid, rod_option
+from ._paths import output_file
 
 
 def sweep_command(
@@ -29,8 +30,9 @@ def sweep_command(
 ) -> None:
     """Sweep the kappa-tau plane: registers, stability and wrench of every uniform helix."""
     console = Console()
-    K = numbers(rod, "--rod", (3, 5))
-    the_rod = Rod(*K, uhat=numbers(uhat, "--uhat", 3))
+    the_rod = rod_option(rod, uhat)
+    output_file(out, "--out")
+    output_file(plot, "--plot", figure=True)
     names = tuple(f.strip() for f in fields.split(",") if f.strip())
     if plot is not None:
         names += tuple(f for f in SUMMARY_FIELDS if f not in names)

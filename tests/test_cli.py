@@ -78,3 +78,10 @@ def test_user_errors_are_usage_errors_before_any_computation(tmp_path, args, mes
     assert message in text, text
     assert "Traceback" not in result.output and isinstance(result.exception, SystemExit)
     assert "wrote" not in text and sorted(p.name for p in tmp_path.iterdir()) == ["AFILE"]
+
+
+def test_sweep_too_large_for_memory_says_what_to_ask_for(tmp_path):
+    result = CliRunner().invoke(app, ["sweep", "--kappa", "0:3:300000", "--tau=-3:3:300000"])
+    assert result.exit_code == 2, result.output
+    text = " ".join(result.output.replace("│", " ").split())
+    assert "grid does not fit in memory" in text and "--fields count" in text and "Traceback" not in result.output

@@ -42,6 +42,11 @@ def sweep_command(
         result = sweep(the_rod, k_axis, t_axis, fields=names, chunk_size=chunk_size, progress=progress)
     except ValueError as error:
         raise typer.BadParameter(str(error)) from None
+    except MemoryError as error:
+        hint = " or ask for fewer fields (--fields count stores one byte per helix)" if names != ("count",) else ""
+        raise typer.BadParameter(
+            f"the {k_axis.size} x {t_axis.size} grid does not fit in memory ({error}); use a coarser grid{hint}"
+        ) from None
     seconds = time.perf_counter() - start
     points = k_axis.size * t_axis.size
     console.print(

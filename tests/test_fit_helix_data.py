@@ -45,3 +45,35 @@ def test_bad_inputs_give_documented_errors(tmp_path):
     with pytest.raises(ValueError, match="force_sigma and moment_sigma"):
         hr.HelixData.from_csv(path)
     assert len(hr.HelixData.from_csv(path, force_sigma=0.1, moment_sigma=0.1)) == 1
+
+
+def test_csv_units_are_converted_or_kept_as_labels(tmp_path):
+    """SI units on the units line are converted to pN, pN nm, 1/nm and rad (the fitted K in
+    pN nm^2); the rod's own scales (labels) are kept; mixing the two, or an angle in an
+    unknown unit, is a named error; a UTF-8 byte-order mark is dropped."""
+    rows = "1e-12,2e-21,1e9,-5e8,1e-13,1e-22,90\n3e-12,1e-21,2e9,5e8,1e-13,1e-22,45\n"
+    header = "force,moment,kappa,tau,force_sigma,moment_sigma,register\n"
+    si = tmp_path / "si.csv"
+    si.write_text("\ufeff" + header + "N,N m,1/m,1/m,N,N m,deg\n" + rows, encoding="utf-8")
+    data = hr.HelixData.from_csv(si)
+    np.testing.assert_allclose(data.force, [1.0, 3.0], rtol=1e-14)
+    np.testing.assert_allclose(data.moment, [2.0, 1.0], rtol=1e-14)
+    np.testing.assert_allclose(data.kappa, [1.0, 2.0], rtol=1e-14)
+    np.testing.assert_allclose(data.tau, [-0.5, 0.5], rtol=1e-14)
+    np.testing.assert_allclose(data.force_sigma, [0.1, 0.1], rtol=1e-14)
+    np.testing.assert_allclose(data.register, [np.pi / 2, np.pi / 4], rtol=1e-14)
+    assert data.units == {"force": "pN", "moment": "pN nm", "kappa": "1/nm", "tau": "1/nm", "force_sigma": "pN",
+                          "moment_sigma": "pN nm", "register": "rad"}
+    labels = tmp_path / "labels.csv"
+    labels.write_text(header + "K1/L^2,K1/L,1/L,1/L,K1/L^2,K1/L,rad\n" + rows)
+    kept = hr.HelixData.from_csv(labels)
+    np.testing.assert_array_equal(kept.force, [1e-12, 3e-12])
+    assert kept.units["moment"] == "K1/L"
+    mixed = tmp_path / "mixed.csv"
+    mixed.write_text(header + "N,K1/L,1/m,1/m,N,N m,rad\n" + rows)
+    with pytest.raises(ValueError, match=r"mixed.csv:2: the units line mixes physical units .* with labels"):
+        hr.HelixData.from_csv(mixed)
+    grads = tmp_path / "grads.csv"
+    grads.write_text(header + "N,N m,1/m,1/m,N,N m,grad\n" + rows)
+    with pytest.raises(ValueError, match="unknown unit 'grad' for column register"):
+        hr.HelixData.from_csv(grads)

@@ -29,6 +29,54 @@ from jaxtyping import Array, ArrayLike, Float
 from .._equilibria import helix_equilibria
 from .._misc import is_concrete
 from .._rod import Rod
+from ._units import ANGLE_UNITS, DIMENSIONLESS_UNITS, FORCE_UNITS, INVERSE_LENGTH_UNITS, TORQUE_UNITS
+
+# The unit tables of each column's physical units (sigmas share their column's).
+_PHYSICAL = {
+    "force": FORCE_UNITS, "moment": TORQUE_UNITS, "kappa": INVERSE_LENGTH_UNITS, "tau": INVERSE_LENGTH_UNITS,
+}
+_INTERNAL_UNITS = {"force": "pN", "moment": "pN nm", "kappa": "1/nm", "tau": "1/nm", "register": "rad"}
+
+
+def _unit_factors(units: dict[str, str], where: str) -> tuple[dict[str, float], dict[str, str]]:
+    """Conversion factors of a units line to the internal units, and the units after it:
+    physical units of force, moment, kappa and tau convert (all stated ones or none: labels
+    stay labels; '-' or an empty cell is not stated), the register's rad or deg always,
+    the correlation is dimensionless."""
+    base = lambda name: name.removesuffix("_sigma")
+    unstated = [n for n, u in units.items() if base(n) in _PHYSICAL and u in ("", "-")]
+    physical = {n: u for n, u in units.items() if base(n) in _PHYSICAL and u in _PHYSICAL[base(n)]}
+    labels = [n for n in units if base(n) in _PHYSICAL and n not in physical and n not in unstated]
+    if physical and labels:
+        raise ValueError(
+            f"{where}: the units line mixes physical units ({', '.join(f'{n} {units[n]}' for n in physical)}) with "
+            f"labels that are not ({', '.join(f'{n} {units[n]!r}' for n in labels)}); give every column in physical units "
+            f"(force: {', '.join(FORCE_UNITS)}; moment: {', '.join(TORQUE_UNITS)}; kappa, tau: 1/nm, 1/um, 1/m, ...) or none"
+        )
+    scaled = [n for n, u in physical.items() if _PHYSICAL[base(n)][u] != 1.0]
+    if scaled and unstated:
+        raise ValueError(
+            f"{where}: {', '.join(scaled)} would be converted to pN and nm, but the units of {', '.join(unstated)} "
+            "are not stated ('-'); state every column's unit"
+        )
+    factors, converted = {}, {}
+    for name, unit in units.items():
+        kind = base(name)
+        if name in physical:
+            factors[name], converted[name] = _PHYSICAL[kind][unit], _INTERNAL_UNITS[kind]
+        elif kind == "register":
+            unit = "rad" if unit in ("", "-") else unit  # an angle without a stated unit is in radians
+            if unit not in ANGLE_UNITS:
+                raise ValueError(f"{where}: unknown unit {unit!r} for column {name}; allowed: {list(ANGLE_UNITS)}")
+            factors[name], converted[name] = ANGLE_UNITS[unit], "rad"
+        elif kind == "kappa_tau_correlation":
+            if unit not in DIMENSIONLESS_UNITS:
+                raise ValueError(f"{where}: {name} is dimensionless; its unit must be one of {list(DIMENSIONLESS_UNITS)}, got {unit!r}")
+            factors[name], converted[name] = 1.0, unit
+        else:
+            factors[name], converted[name] = 1.0, unit
+    return factors, converted
+
 
 #: Column order of the CSV form; the first four are required.
 CSV_COLUMNS = (
@@ -220,13 +268,16 @@ class HelixData(eqx.Module):
         a comma-separated subset of `force, moment, kappa, tau, force_sigma, moment_sigma,
         kappa_sigma, tau_sigma, kappa_tau_correlation, register, register_sigma` in any order (the first four are
         required; the sigma columns may instead be given as arguments, which then
-        override).  The next line may be a units line: same columns, unit strings (e.g.
-        `pN,pN nm,1/nm,1/nm,pN,pN nm`); it is recognised by its first cell not being a
-        number.  Then one data row per helix; an empty cell in an optional column is not
+        override).  The next line may be a units line: same columns, unit strings; it is
+        recognised by its first cell not being a number.  Physical units (force pN, fN,
+        nN, N; moment pN nm, N m, ...; curvature and torsion 1/nm, 1/um, 1/m, ...; register
+        rad or deg) are converted to pN, pN nm, 1/nm and rad, so the fitted stiffness is in
+        pN nm^2; labels that are not physical units (`K1/L^2, K1/L, 1/L, 1/L` for data in
+        the rod's own scales) are kept as given, and mixing the two is an error.  Then one data row per helix; an empty cell in an optional column is not
         allowed (drop the column instead).  Errors name the file line (counted from 1).
         """
         path = Path(path)
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark (Excel's "CSV UTF-8") is dropped
         lines = [(i + 1, line) for i, line in enumerate(text.splitlines()) if line.strip() and not line.lstrip().startswith("#")]
         if not lines:
             raise ValueError(f"{path}: no header line")
@@ -260,6 +311,9 @@ class HelixData(eqx.Module):
                 values[r] = [float(c) for c in cells]
             except ValueError:
                 raise ValueError(f"{path}:{lineno}: not a number in {cells}") from None
+        if units:
+            factors, units = _unit_factors(units, f"{path}:{lines[1][0]}")
+            values = values * np.array([factors[n] for n in names])
         bad = ~np.all(np.isfinite(values), axis=1)
         if bad.any():
             file_lines = [body[r][0] for r in np.flatnonzero(bad)]

@@ -23,6 +23,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._dna import ROOM_TEMPERATURE
 from .._misc import column, finite_scalar, float_dtype, is_concrete
+from ._units import FORCE_UNITS, LENGTH_UNITS, TORQUE_UNITS
 
 #: Column order of the CSV form (`force`, `extension` and one of `turns`/`torque` are required).
 CSV_COLUMNS = (
@@ -40,31 +41,19 @@ CSV_COLUMNS = (
 )
 
 # Unit strings accepted on the CSV units line, each with its factor to the internal unit.
-_FORCE_UNITS = {"pN": 1.0, "fN": 1e-3, "nN": 1e3, "N": 1e12}
-_LENGTH_UNITS = {"nm": 1.0, "um": 1e3, "\u00b5m": 1e3, "\u03bcm": 1e3, "mm": 1e6, "m": 1e9}
 _TURNS_UNITS = {"turns": 1.0, "rad": 1.0 / (2.0 * math.pi), "deg": 1.0 / 360.0}
-_TORQUE_UNITS = {
-    "pN nm": 1.0,
-    "pN*nm": 1.0,
-    "pN\u00b7nm": 1.0,
-    "pNnm": 1.0,
-    "pN um": 1e3,
-    "N m": 1e21,
-    "N*m": 1e21,
-    "Nm": 1e21,
-}
 _ID_UNITS = {"-": 1.0, "id": 1.0, "": 1.0}
 _BP_UNITS = {"bp": 1.0, "-": 1.0, "": 1.0}
 _COLUMN_UNITS = {
-    "force": _FORCE_UNITS,
-    "force_sigma": _FORCE_UNITS,
-    "extension": _LENGTH_UNITS,
-    "extension_sigma": _LENGTH_UNITS,
+    "force": FORCE_UNITS,
+    "force_sigma": FORCE_UNITS,
+    "extension": LENGTH_UNITS,
+    "extension_sigma": LENGTH_UNITS,
     "turns": _TURNS_UNITS,
     "turns_sigma": _TURNS_UNITS,
-    "torque": _TORQUE_UNITS,
-    "measured_torque": _TORQUE_UNITS,
-    "measured_torque_sigma": _TORQUE_UNITS,
+    "torque": TORQUE_UNITS,
+    "measured_torque": TORQUE_UNITS,
+    "measured_torque_sigma": TORQUE_UNITS,
     "molecule": _ID_UNITS,
     "n_bp": _BP_UNITS,
 }
@@ -466,9 +455,9 @@ class TweezerData(eqx.Module):
         if not isinstance(fdcurve, FdCurve):
             raise TypeError(f"{owner}: expected a lumicks.pylake FdCurve, got {type(fdcurve).__name__}")
         force_channel, distance_channel = fdcurve.f, fdcurve.d
-        f = np.asarray(force_channel.data, dtype=float) * _label_factor(force_channel, _FORCE_UNITS, "pN", "force", owner)
+        f = np.asarray(force_channel.data, dtype=float) * _label_factor(force_channel, FORCE_UNITS, "pN", "force", owner)
         d = np.asarray(distance_channel.data, dtype=float) * _label_factor(
-            distance_channel, _LENGTH_UNITS, "\u00b5m", "distance", owner
+            distance_channel, LENGTH_UNITS, "\u00b5m", "distance", owner
         )
         if f.ndim != 1 or f.shape != d.shape:
             raise ValueError(f"{owner}: force and distance channels differ in shape: {f.shape} and {d.shape}")
@@ -539,7 +528,7 @@ class TweezerData(eqx.Module):
         path = Path(path)
         rows = []
         comment_temperature = None
-        for lineno, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        for lineno, line in enumerate(path.read_text(encoding="utf-8-sig").splitlines(), start=1):
             stripped = line.strip()
             if not stripped:
                 continue

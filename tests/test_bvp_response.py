@@ -87,6 +87,11 @@ def test_force_extension_command(tmp_path):
     np.testing.assert_allclose(curve["extension"], direct.extension, atol=1e-9)
     bad = CliRunner().invoke(app, ["force-extension", "--uhat", "0,0,0"])
     assert bad.exit_code != 0 and "must not be zero" in bad.output
+    # Rows that fail keep the force that was asked, say why, and what to try.
+    long = CliRunner().invoke(app, ["force-extension", "--turns", "20", "--forces", "0:0.5:4", "--segments", "4"])
+    assert long.exit_code == 0, long.output
+    text = " ".join(long.output.split())
+    assert "F = 0.5 did not converge: The maximum number of steps" in text and "try --segments 8" in text
 
 
 def test_rotation_response_agrees_with_force_extension():

@@ -7,14 +7,15 @@ import math
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 import typer
 from rich.console import Console
 from rich.table import Table
 
-from .. import force_extension
-from ..plot import plot_response
+from .. import RESULTS, force_extension
 from .._misc import write_atomically
+from ..plot import plot_response
 from ._numbers import grid, rod_option
 from ._paths import output_file
 
@@ -64,11 +65,17 @@ def force_extension_command(
         table.add_column(col, justify="right")
     for i in range(force_values.size):
         table.add_row(
-            f"{float(curve.force[i]):.4g}", f"{float(curve.extension[i]):.6g}", f"{float(curve.bulk_extension[i]):.6g}",
+            f"{float(force_values[i]):.4g}", f"{float(curve.extension[i]):.6g}", f"{float(curve.bulk_extension[i]):.6g}",
             f"{float(curve.extension[i] - curve.bulk_extension[i]):+.3e}", f"{float(getattr(curve, other)[i]):.6g}",
             f"{float(getattr(curve, 'bulk_' + other)[i]):.6g}", "yes" if bool(curve.ok[i]) else "no",
         )
     console.print(table)
+    failed = np.flatnonzero(~np.asarray(curve.ok))
+    for i in failed[:10]:  # the requested force, and why its solve failed
+        reason = RESULTS[jax.tree.map(lambda code, i=i: code[i], curve.result)]
+        console.print(f"F = {float(force_values[i]):.4g} did not converge: {reason}", soft_wrap=True)
+    if failed.size:
+        console.print(f"a long or stretched rod may need more shooting pieces: try --segments {2 * segments}", soft_wrap=True)
     console.print(f"{force_values.size} points in {seconds:.2f} s (compilation included); "
                   f"{int(np.sum(~np.asarray(curve.ok)))} did not converge")
     if out is not None:

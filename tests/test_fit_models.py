@@ -135,3 +135,29 @@ def test_summary_save_and_load(noisy, tmp_path):
         hr.StiffnessFit.load(tmp_path / "broken.json")
     # The data print their size and ranges, not array shapes.
     assert repr(data).startswith(f"HelixData({len(data)} points: force ") and "sigmas of force, moment" in repr(data)
+
+
+def test_errors_in_variables_default_follows_the_data():
+    """On when the data carry kappa or tau sigmas (the bundled DNA helices do), off when not,
+    and an explicit choice wins."""
+    from helixrod._fit import forward_model
+
+    with_sigmas = hr.dna.load_tweezer_example().helix_data()
+    assert forward_model(with_sigmas).errors_in_variables is True
+    assert forward_model(with_sigmas, errors_in_variables=False).errors_in_variables is False
+    plain = hr.HelixData(with_sigmas.force, with_sigmas.moment, with_sigmas.kappa, with_sigmas.tau,
+                         with_sigmas.force_sigma, with_sigmas.moment_sigma)
+    assert forward_model(plain).errors_in_variables is False
+
+
+def test_reduced_chi2_warning():
+    import types
+
+    from helixrod.cli._report import chi2_warning
+
+    fit = lambda chi2, m=100, rank=5: types.SimpleNamespace(
+        chi2_reduced=chi2, n_residuals=m, identifiability=types.SimpleNamespace(rank=rank))
+    assert chi2_warning(fit(1.2)) is None and chi2_warning(fit(0.8)) is None  # within 5 sd (0.145 each)
+    assert "far from 1 for 95 degrees of freedom" in chi2_warning(fit(5e4)) and "larger than" in chi2_warning(fit(5e4))
+    assert "smaller than the sigmas say" in chi2_warning(fit(0.1))
+    assert chi2_warning(fit(9.0, m=5, rank=5)) is None  # no degrees of freedom

@@ -256,8 +256,9 @@ def _(data: HelixData, *, branch=None, use_register=None, errors_in_variables=No
         use_register = data.register_sigma is not None
     if use_register and data.register is None:
         raise ValueError("use_register=True but the data have no register column")
-    errors_in_variables = bool(errors_in_variables)
-    if errors_in_variables and data.kappa_sigma is None and data.tau_sigma is None:
+    has_sigmas = data.kappa_sigma is not None or data.tau_sigma is not None
+    errors_in_variables = has_sigmas if errors_in_variables is None else bool(errors_in_variables)
+    if errors_in_variables and not has_sigmas:
         raise ValueError("errors_in_variables=True needs kappa_sigma and/or tau_sigma in the data")
     zero = jnp.zeros_like(data.kappa)
     either = lambda x: zero if x is None else x  # noqa: E731

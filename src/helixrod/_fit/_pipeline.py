@@ -441,7 +441,8 @@ def fit_stiffness(
       `data.register_sigma` is given, the angle is a residual too (default: on when the
       data carry `register_sigma`); `errors_in_variables` -- propagate `data.kappa_sigma`,
       `tau_sigma` (and `kappa_tau_correlation`) to first order into an effective 2x2
-      covariance of (F, M) at each register; the residual pair is whitened by it.
+      covariance of (F, M) at each register; the residual pair is whitened by it (default:
+      on when the data carry `kappa_sigma` or `tau_sigma`).
     - `throw`: raise `SolverError` if the best start did not converge (default `False`:
       read `ok`, `result`, `message`).
 

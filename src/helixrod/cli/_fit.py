@@ -30,6 +30,10 @@ def fit(
     n_starts: int = typer.Option(32, help="number of (vmapped) starts"),
     seed: int = typer.Option(0, help="seed of the random starts"),
     relative_sigma: bool = typer.Option(False, "--relative-sigma", help="scale errors by the reduced chi2"),
+    errors_in_variables: bool = typer.Option(
+        None, "--errors-in-variables/--no-errors-in-variables",
+        help="propagate the kappa, tau sigmas of the data into the force and moment residuals (default: on when the data carry them)",
+    ),
     out: Path = typer.Option(None, help="write the fit as JSON"),
     plot: Path = typer.Option(None, help="write observed vs predicted F and M as PNG"),
 ) -> None:
@@ -51,6 +55,7 @@ def fit(
             n_starts=n_starts,
             key=jax.random.key(seed),
             absolute_sigma=not relative_sigma,
+            errors_in_variables=errors_in_variables,
         )
     except ValueError as error:
         console.print(f"[red]error:[/red] {error}")

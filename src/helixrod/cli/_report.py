@@ -6,6 +6,22 @@ import numpy as np
 from rich.table import Table
 
 
+def chi2_warning(fit) -> str | None:
+    """A warning when the reduced chi2 is far from 1 for its degrees of freedom nu (more than
+    5 of its standard deviations sqrt(2/nu) away): the sigmas do not describe the scatter,
+    or the model misses something, and the standard errors (which trust the sigmas) are
+    unreliable.  `None` otherwise."""
+    nu = fit.n_residuals - int(fit.identifiability.rank)
+    chi2 = float(fit.chi2_reduced)
+    if nu < 1 or not np.isfinite(chi2) or abs(chi2 - 1.0) <= 5.0 * np.sqrt(2.0 / nu):
+        return None
+    cause = "larger than the sigmas say" if chi2 > 1 else "smaller than the sigmas say (are they overestimated?)"
+    return (
+        f"warning: reduced chi2 = {chi2:.4g} is far from 1 for {nu} degrees of freedom (expected 1 +- {np.sqrt(2.0 / nu):.2g}): "
+        f"the scatter is {cause}, or the model misses something; the standard errors trust the sigmas"
+    )
+
+
 def print_fit(console, fit) -> None:
     """Rich tables of a `StiffnessFit` on `console`: values with standard errors,
     correlations, and the identifiability report."""
@@ -17,6 +33,9 @@ def print_fit(console, fit) -> None:
         rel = f"{abs(e / v):.2%}" if v != 0 and np.isfinite(e) else "-"
         table.add_row(name, f"{v:.6g}", f"{e:.3g}", rel)
     console.print(table)
+    warning = chi2_warning(fit)
+    if warning:
+        console.print(f"[yellow]{warning}[/yellow] (--relative-sigma scales them by it)", soft_wrap=True)
     corr = Table(title="correlations")
     corr.add_column("")
     for name in fit.names:

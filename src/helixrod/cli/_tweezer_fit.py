@@ -17,6 +17,7 @@ from .. import dna, fit_stiffness, profile_likelihood
 from ..plot import plot_tweezer_fit
 from ._numbers import assignments
 from ._paths import output_file
+from ._report import chi2_warning
 
 _UNITS = {"K": "pN nm^2", "uhat": "1/nm", "persistence_length": "nm", "plectoneme_twist_persistence": "nm", "offset_": "nm"}
 
@@ -87,6 +88,9 @@ def print_tweezer_fit(console, fit, data, fixed: dict[str, float]) -> dict[str, 
         f"free parameters); converged: {fit.ok} ({escape(fit.message)}, {fit.n_steps} steps)",
         soft_wrap=True,
     )
+    warning = chi2_warning(fit)
+    if warning:
+        console.print(f"[yellow]{escape(warning)}[/yellow]", soft_wrap=True)
     for w, e in zip(fit.identifiability.weak, fit.identifiability.weak_stderr):
         combo = " ".join(f"{c:+.3f}*{n}" for n, c in w)
         console.print(f"weakly determined: {combo}  (scaled stderr {e:.3g})", soft_wrap=True)

@@ -331,3 +331,34 @@ def test_multiple_shooting_reaches_where_single_shooting_fails():
     assert bool(multiple.ok)
     np.testing.assert_allclose(multiple.end_position, end.position, atol=1e-8)
     np.testing.assert_allclose(multiple.end_frame, end.frame, atol=1e-8)
+
+
+_FLOAT32_SOLVE = """
+import json, jax, jax.numpy as jnp
+import helixrod as hr
+spring = hr.Rod(1.0, 1.0, 1 / 1.3, uhat=(0.0, 1.0, 0.3))
+start, end = hr.axial_ends(spring, 30.0, extension=12.0, rotation=30.0 * 1.044 + 0.5)
+sol = hr.solve_boundary_value(spring, 30.0, start=start, end=end, segments=4)
+print(json.dumps({"dtype": str(sol.force.dtype), "force": sol.force.tolist(), "ok": bool(sol.ok)}))
+"""
+
+
+def test_the_readme_spring_solves_in_float32():
+    """With x64 off (a subprocess: the session runs in float64) the README's spring converges:
+    the tolerances are raised to 100 float32 epsilons (`BoundaryValueOptions.for_dtype`) and
+    the reaction agrees with float64 to float32's precision of the solve (1e-4)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    proc = subprocess.run([sys.executable, "-c", _FLOAT32_SOLVE], capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out["dtype"] == "float32" and out["ok"]
+    spring = hr.Rod(1.0, 1.0, 1 / 1.3, uhat=(0.0, 1.0, 0.3))
+    start, end = hr.axial_ends(spring, 30.0, extension=12.0, rotation=30.0 * 1.044 + 0.5)
+    reference = hr.solve_boundary_value(spring, 30.0, start=start, end=end, segments=4)
+    np.testing.assert_allclose(out["force"], reference.force, rtol=1e-4, atol=1e-4 * float(jnp.linalg.norm(reference.force)))
+    assert hr.BoundaryValueOptions().for_dtype(jnp.float64).atol == hr.BoundaryValueOptions().atol

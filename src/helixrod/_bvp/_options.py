@@ -14,6 +14,9 @@ from .._kirchhoff import solve_static
 from .._lie import CommutatorFreeRK4, MuntheKaasRK
 from .._misc import check_choice, check_integer, is_concrete
 
+#: The smallest tolerance a solve is asked for, in machine epsilons of its precision.
+TOLERANCE_EPSILONS = 100
+
 #: Root-finder steps: damped (Levenberg--Marquardt) or plain Newton steps.
 METHODS = ("levenberg-marquardt", "newton")
 
@@ -76,6 +79,14 @@ class BoundaryValueOptions(eqx.Module):
                 f"{owner}: adjoint must be diffrax.ForwardMode() or diffrax.DirectAdjoint() "
                 f"(Newton's method needs forward-mode derivatives of the flow), got {type(self.adjoint).__name__}"
             )
+
+    def for_dtype(self, dtype) -> BoundaryValueOptions:
+        """These options with every tolerance raised to at least `TOLERANCE_EPSILONS`
+        machine epsilons of `dtype` (float32: 1.2e-5), which a solve in that precision can
+        reach; in float64 the defaults are far above that floor and unchanged."""
+        floor = TOLERANCE_EPSILONS * float(jnp.finfo(dtype).eps)
+        raise_to = lambda x: jnp.maximum(jnp.asarray(x, dtype), floor)
+        return eqx.tree_at(lambda o: (o.atol, o.ode_rtol, o.ode_atol), self, tuple(raise_to(x) for x in (self.atol, self.ode_rtol, self.ode_atol)))
 
     def integrate(self, rod, n0, m0, length, ode_tol, **kwargs):
         """`solve_static` with this configuration's integrator, frame and centreline

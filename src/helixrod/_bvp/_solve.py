@@ -144,6 +144,7 @@ def solve(rod, length, start: Clamped, end: EndCondition, guess, saveat, options
     `result`).  `guess`: `None` (the default guess of `guess_kind`), a `WarmStart` of as
     many pieces, or `(n0, m0)`."""
     dtype = float_dtype()
+    options = options.for_dtype(dtype)
     valid = jnp.isfinite(length) & (length > 0) & end.finite()
     valid = valid & jnp.all(jnp.isfinite(start.position)) & jnp.all(jnp.isfinite(start.frame))
     if isinstance(guess, tuple):

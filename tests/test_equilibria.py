@@ -239,3 +239,23 @@ def test_python_lists_are_arrays():
     np.testing.assert_array_equal(listed.force, arrays.force)
     with pytest.raises(ValueError, match="kappa must be real numbers"):
         hr.helix_equilibria(rod, ["a"], [1.0])
+
+
+def test_eager_chunked_calls_compile_once(monkeypatch):
+    """Called eagerly above the chunk size, a second call of the same shape compiles nothing
+    (the chunk loop is one jitted program, not a loop over a fresh closure per call)."""
+    from helixrod import _equilibria
+
+    monkeypatch.setattr(_equilibria, "_CPU_CHUNK", 1024)
+    rod = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
+    kappa, tau = jnp.linspace(0.1, 3.0, 3000), jnp.linspace(-3.0, 3.0, 3000)
+    compiles, listening = [], [False]
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda event, duration, **kw: compiles.append(event) if listening[0] and "backend_compile" in event else None
+    )
+    first = hr.helix_equilibria(rod, kappa, tau)
+    listening[0] = True
+    second = hr.helix_equilibria(rod, kappa, tau)
+    listening[0] = False
+    assert compiles == []
+    np.testing.assert_array_equal(first.phi, second.phi)

@@ -10,6 +10,7 @@ $C = K_{13}(\\tau - \\hat u_3) - K_1 \\hat u_1$ is solved by `helixrod._roots`.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -138,10 +139,10 @@ def helix_equilibria(rod: Rod, kappa: ArrayLike, tau: ArrayLike) -> HelixEquilib
             lambda x: jnp.broadcast_to(x, shape + x.shape[len(batch) :]).reshape((size,) + x.shape[len(batch) :]),
             rod,
         )
-    if batch:
-        eq = _map_chunks(_equilibria_flat, (rod, kappa, tau), size)
+    if size > _CPU_CHUNK and jax.default_backend() == "cpu":
+        eq = _equilibria_chunked(rod, kappa, tau, limit=_CPU_CHUNK)
     else:
-        eq = _map_chunks(lambda k, t: _equilibria_flat(rod, k, t), (kappa, tau), size)
+        eq = _equilibria_flat(rod, kappa, tau)
     return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), eq)
 
 
@@ -153,16 +154,24 @@ def helix_equilibria(rod: Rod, kappa: ArrayLike, tau: ArrayLike) -> HelixEquilib
 _CPU_CHUNK = 32768
 
 
-def _map_chunks(fn, args, size):
-    """`fn(*args)` on flat arrays (leading axis `size`), in equal chunks of at most
-    `_CPU_CHUNK` points on a CPU, each chunk's results written in place.  Values equal
-    those of one pass up to rounding (another program may contract other FMAs)."""
-    if size <= _CPU_CHUNK or jax.default_backend() != "cpu":
-        return fn(*args)
-    count = -(-size // _CPU_CHUNK)
+@functools.partial(jax.jit, static_argnames=("limit",))
+def _equilibria_chunked(rod: Rod, kappa, tau, limit: int) -> HelixEquilibria:
+    """`_equilibria_flat` in chunks of at most `limit` points (one compiled program per
+    shape and limit: called eagerly, a loop over a fresh closure would compile every call)."""
+    size = kappa.shape[0]
+    if rod.K1.ndim:
+        return _map_chunks(_equilibria_flat, (rod, kappa, tau), size, limit)
+    return _map_chunks(lambda k, t: _equilibria_flat(rod, k, t), (kappa, tau), size, limit)
+
+
+def _map_chunks(fn, args, size, limit):
+    """`fn(*args)` on flat arrays (leading axis `size` > `limit`), in equal chunks of at most
+    `limit` points, each chunk's results written in place.  Values equal those of one pass
+    up to rounding (another program may contract other FMAs)."""
+    count = -(-size // limit)
     # Equal chunks, rounded up to a multiple of 1024 (odd sizes measured up to 1.6x slower);
     # the last chunk overlaps its predecessor.
-    chunk = min(-(-size // (count * 1024)) * 1024, _CPU_CHUNK)
+    chunk = min(-(-size // (count * 1024)) * 1024, limit)
 
     def chunk_at(start):
         return jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, chunk), args)

@@ -212,7 +212,7 @@ def test_parse_fix():
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["missing.csv"], "error: no such file: missing.csv"),
+        (["missing.csv"], "error: DATA: no such file: missing.csv"),
         (["DATA", "--fix", "K13=abc"], "error: --fix entry 'K13=abc': 'abc' is not a number"),
         (["DATA", "--fix", "K1=1000,K13"], "error: --fix entry 'K13' is not NAME=VALUE"),
         (["DATA", "--fix", "K13=0,K13=1"], "error: --fix names K13 twice"),

@@ -16,7 +16,7 @@ from rich.table import Table
 from .. import dna, fit_stiffness, profile_likelihood
 from ..plot import plot_tweezer_fit
 from ._numbers import assignments
-from ._paths import output_file
+from ._paths import input_file, output_file
 from ._report import chi2_warning
 
 _UNITS = {"K": "pN nm^2", "uhat": "1/nm", "persistence_length": "nm", "plectoneme_twist_persistence": "nm", "offset_": "nm"}
@@ -160,13 +160,12 @@ def tweezer_fit_command(
             _fail(console, f"--profile {name}: that parameter is held fixed (--fix); profile a free one")
     if n_bp is not None and not (math.isfinite(n_bp) and n_bp > 0):
         _fail(console, f"--n-bp must be a positive number of base pairs, got {n_bp:g}")
-    if not data.is_file():
-        _fail(console, f"no such file: {data}")
-    for path, option, figure in ((out, "--out", False), (plot, "--plot", True)):
-        try:
-            output_file(path, option, figure=figure)
-        except typer.BadParameter as error:
-            _fail(console, error.message)
+    try:
+        input_file(data, "DATA")
+        output_file(out, "--out")
+        output_file(plot, "--plot", figure=True)
+    except typer.BadParameter as error:
+        _fail(console, error.message)
     try:
         observations = dna.TweezerData.from_csv(data, n_bp=n_bp)
     except (OSError, UnicodeDecodeError) as error:

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
@@ -30,9 +29,9 @@ ROUNDOFF = 1e-10
 
 
 class RoundoffTrustRegion(optx.ClassicalTrustRegion):
-    """`optimistix.ClassicalTrustRegion` that also accepts a step (keeping the trust radius)
-    when its predicted reduction and its actual change of the loss are both below
-    `ROUNDOFF` times the loss."""
+    """`optimistix.ClassicalTrustRegion` that also accepts a step when its predicted
+    reduction and its actual change of the loss are both below `ROUNDOFF` times the loss
+    (shrinking the trust radius as for a rejected step)."""
 
     def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
         _, accept, result, new_state = super().step(first_step, y, y_eval, f_info, f_eval_info, state)
@@ -40,8 +39,10 @@ class RoundoffTrustRegion(optx.ClassicalTrustRegion):
         loss, loss_eval = f_info.as_min(), f_eval_info.as_min()
         noise = ROUNDOFF * jnp.abs(loss)
         at_roundoff = ~accept & (-predicted <= noise) & (loss_eval - loss <= noise)
-        kept = jnp.where(at_roundoff, state.step_size, new_state.step_size)
-        return kept, accept | at_roundoff, result, eqx.tree_at(lambda s: s.step_size, new_state, kept)
+        # The radius still shrinks as for a rejected step: where the model's own noise keeps
+        # the Gauss-Newton step above the tolerance, successive round-off steps get smaller
+        # and the Cauchy termination is reached.
+        return new_state.step_size, accept | at_roundoff, result, new_state
 
 
 class LevenbergMarquardt(optx.AbstractGaussNewton):

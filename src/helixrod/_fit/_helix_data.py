@@ -273,7 +273,8 @@ class HelixData(eqx.Module):
         nN, N; moment pN nm, N m, ...; curvature and torsion 1/nm, 1/um, 1/m, ...; register
         rad or deg) are converted to pN, pN nm, 1/nm and rad, so the fitted stiffness is in
         pN nm^2; labels that are not physical units (`K1/L^2, K1/L, 1/L, 1/L` for data in
-        the rod's own scales) are kept as given, and mixing the two is an error.  Then one data row per helix; an empty cell in an optional column is not
+        the rod's own scales) are kept as given, and mixing the two is an error.  Then one
+        data row per helix; an empty cell in an optional column is not
         allowed (drop the column instead).  Errors name the file line (counted from 1).
         """
         path = Path(path)

@@ -196,14 +196,17 @@ class StiffnessFit(eqx.Module):
         the JSON-serialisable entries of `extra` beside them (e.g. what the command line
         derived from the fit; `load` ignores them).  The fit problem (model, data, solver)
         is not saved: a loaded fit has no `propagate`, `profile_likelihood` or `bootstrap`."""
-        record = {"format": SAVE_FORMAT, **self.to_dict()}
-        clash = sorted(set(extra or {}) & (set(record) | {"result", "residuals", "predicted", "start_costs"}))
+        record = {
+            "format": SAVE_FORMAT,
+            **self.to_dict(),
+            "result": result_name(self.result),
+            "residuals": np.asarray(self.residuals).tolist(),
+            "predicted": {k: np.asarray(v).tolist() for k, v in self.predicted.items()},
+            "start_costs": np.asarray(self.start_costs).tolist(),
+        }
+        clash = sorted(set(extra or {}) & set(record))
         if clash:
             raise ValueError(f"StiffnessFit.save: extra entries {clash} would overwrite the fit's own")
-        record["result"] = result_name(self.result)
-        record["residuals"] = np.asarray(self.residuals).tolist()
-        record["predicted"] = {k: np.asarray(v).tolist() for k, v in self.predicted.items()}
-        record["start_costs"] = np.asarray(self.start_costs).tolist()
         record.update(extra or {})
         text = json.dumps(record, indent=1)
         write_atomically(path, lambda f: f.write(text), binary=False)

@@ -4,10 +4,11 @@
 Its callback turns on float64 (``jax_enable_x64``) once, before any command runs: every
 command computes and prints in float64; and, unless ``--no-cache``, the persistent
 compilation cache (`helixrod.enable_compilation_cache`), so that a second run of a command
-loads its compiled programs instead of compiling them again.  One private module per command (`_demo`, `_sweep`,
-`_fit`, `_force_extension`, `_tweezer_fit`); `_numbers` parses every number spec
-(comma-separated lists and ``start:stop:num`` grid axes), `_report` prints the tables of a
-fit; figures are drawn only by the plotting module (`helixrod.plot`).
+loads its compiled programs instead of compiling them again.  One private module per
+command (`_demo`, `_sweep`, `_fit`, `_force_extension`, `_tweezer_fit`); `_numbers` parses
+every number spec (comma-separated lists and ``start:stop:num`` grid axes), `_paths`
+checks input and output files before anything runs, `_report` prints the tables of a fit;
+figures are drawn only by the plotting module (`helixrod.plot`).
 """
 
 from __future__ import annotations

@@ -4,8 +4,9 @@ Three kinds of spec: named values ``NAME=VALUE[,NAME=VALUE...]`` (`assignments`:
 K13=0,K23=0``), comma-separated numbers, a required count of them (`numbers`: ``--rod
 1,1.5,0.8[,0.5,0.5]`` takes 3 or 5, ``--uhat u1,u2,u3`` takes 3), and a grid axis
 ``start:stop:num`` (`grid`: ``--kappa 0:3:1000``, ``--forces 0:0.05:21``), ``num`` points
-from ``start`` to ``stop`` inclusive; and the rod of ``--rod`` and ``--uhat`` (`rod_option`).  A bad spec raises `typer.BadParameter` naming the
-option (exit code 2, the message in typer's error box).
+from ``start`` to ``stop`` inclusive; and the rod of ``--rod`` and ``--uhat`` (`rod_option`).
+A bad spec raises `typer.BadParameter` naming the option (exit code 2, the message in
+typer's error box).
 """
 
 from __future__ import annotations

@@ -155,6 +155,34 @@ def _stability_step(rod, n0, m0):
     return jnp.maximum(frobenius_step, spectral_step)
 
 
+def linearised_rate(rod, n0, m0) -> Array:
+    """An upper bound on the spectral radius of the linearised wrench equations at the local
+    wrench (`n0`, `m0`) (`_spectral_radius_bound`): the fastest rate at which variations of
+    a solution turn or grow, per unit length (no gradient)."""
+    J = _wrench_jacobian(rod, jax.lax.stop_gradient(jnp.concatenate([n0, m0])))
+    return _spectral_radius_bound(J)
+
+
+def fixed_step_flow(rod, n0, m0, length, steps) -> RodState:
+    """The state at $s$ = `length` from the identity pose at the origin with local start
+    wrench (`n0`, `m0`), by `steps` equal `CommutatorFreeRK4` steps (may be traced) in a
+    plain loop: the flow `solve_static(..., steps=)` computes, as a far smaller program,
+    for callers that differentiate it in many directions (the stability test)."""
+    term = BodyVelocityTerm(_body_velocity)
+    solver = CommutatorFreeRK4()
+    dtype = jnp.result_type(n0, m0, float)
+    y0 = RodState(n0, m0, jnp.eye(3, dtype=dtype), jnp.zeros(3, dtype))
+    h = length / steps
+
+    def step(i, carry):
+        y, k1 = carry
+        y1, _, _, k5, _ = solver.step(term, i * h, (i + 1) * h, y, rod, k1, False)
+        return y1, k5
+
+    y, _ = jax.lax.fori_loop(0, steps, step, (y0, solver.init(term, 0.0, h, y0, rod)))
+    return y
+
+
 def _parse_outputs(outputs) -> tuple[bool, bool, bool]:
     """(integrate the frame, store the frame, integrate and store the centreline)."""
     names = (outputs,) if isinstance(outputs, str) else tuple(outputs)

@@ -39,6 +39,10 @@ class BoundaryValueOptions(eqx.Module):
     - `ode_rtol`, `ode_atol`, `solver` (`CommutatorFreeRK4()` or `MuntheKaasRK(...)`: the
       shooting equations rely on their exact conservation of the lab wrench),
       `max_ode_steps`: the integration of each piece.
+    - `stability_pieces`: pieces of the stability test of the solution (`_stability.py`;
+      rounded up to a multiple of `segments`; 0: no stability test, `instability_index`
+      -1); each piece must be short against the wrench, and `solve_boundary_value` doubles
+      them where it is not.
     - `adjoint`: `diffrax.ForwardMode()` (`jax.jvp`/`jax.jacfwd` through the solve) or
       `diffrax.DirectAdjoint()` (also `jax.grad`/`jax.jacrev`, slower to compile and run).
 
@@ -55,6 +59,7 @@ class BoundaryValueOptions(eqx.Module):
     solver: diffrax.AbstractSolver = CommutatorFreeRK4()
     max_ode_steps: int = eqx.field(static=True, default=16_384)
     adjoint: diffrax.AbstractAdjoint = diffrax.ForwardMode()
+    stability_pieces: int = eqx.field(static=True, default=16)
 
     def __check_init__(self):
         owner = "BoundaryValueOptions"
@@ -62,6 +67,7 @@ class BoundaryValueOptions(eqx.Module):
         check_integer(self.continuation, "continuation", owner, minimum=0)
         check_integer(self.max_steps, "max_steps", owner)
         check_integer(self.max_ode_steps, "max_ode_steps", owner)
+        check_integer(self.stability_pieces, "stability_pieces", owner, minimum=0)
         check_choice(self.method, METHODS, "method", owner)
         for name in ("atol", "ode_rtol", "ode_atol"):
             value = getattr(self, name)

@@ -22,6 +22,8 @@ totals falls like $1/L$ (tested in `tests/test_bvp.py`).
 
 from __future__ import annotations
 
+import dataclasses
+
 import diffrax
 import equinox as eqx
 import jax
@@ -54,6 +56,14 @@ class ResponseCurve(eqx.Module):
     uniform helix with the same two controls (extension and rotation totals over $L$);
     `result` (a `RESULTS` code per point) and `ok`, `bulk_ok`, `residual`, `num_steps`;
     `solutions` the `BoundaryValueSolution` of every point (batched, end state only).
+
+    Stability per point: `stable`, `instability_index`, `stability_margin` (as
+    `BoundaryValueSolution`).  `critical`: the value of the swept control at which the
+    curve first loses stability (between the last stable point and the next, located by
+    bisection on the solutions; NaN if it never does, or under `jax.jit`/`vmap`), and
+    `critical_kind`: `"branch point"` (the branch goes on through it, now unstable: a
+    bifurcation, as Euler's), `"fold"` (the branch ends there: no nearby equilibrium
+    beyond it), or `"none"`; `critical_force`, `critical_rotation` name it.
     """
 
     controls: str = eqx.field(static=True)
@@ -72,11 +82,43 @@ class ResponseCurve(eqx.Module):
     residual: Float[Array, " n"]
     num_steps: Int[Array, " n"]
     solutions: BoundaryValueSolution
+    critical: Float[Array, ""]
+    critical_kind: str = eqx.field(static=True)
 
     @property
     def ok(self) -> Bool[Array, " n"]:
         """Whether each point's solve succeeded."""
         return self.result == RESULTS.successful
+
+    @property
+    def stable(self) -> Bool[Array, " n"]:
+        """Whether each point converged to a stable equilibrium."""
+        return self.solutions.stable
+
+    @property
+    def instability_index(self) -> Int[Array, " n"]:
+        """Unstable directions at each point (-1: not defined)."""
+        return self.solutions.instability_index
+
+    @property
+    def stability_margin(self) -> Float[Array, " n"]:
+        """The stability margin at each point (NaN: not defined)."""
+        return self.solutions.stability_margin
+
+    @property
+    def critical_force(self) -> Float[Array, ""]:
+        """`critical` of a curve swept in force."""
+        return self._critical("force")
+
+    @property
+    def critical_rotation(self) -> Float[Array, ""]:
+        """`critical` of a curve swept in rotation."""
+        return self._critical("rotation")
+
+    def _critical(self, name):
+        if self.swept != name:
+            raise ValueError(f"this curve is swept in {self.swept}, not {name}: read critical_{self.swept}")
+        return self.critical
 
     @property
     def held(self) -> str:
@@ -261,8 +303,46 @@ def _response(rod, length, name, values, swept, *, mode, options, owner, throw, 
         residual=sols.residual,
         num_steps=sols.num_steps,
         solutions=sols,
+        critical=jnp.asarray(jnp.nan, values.dtype),
+        critical_kind="none",
     )
+    if is_concrete(curve) and mode == "continuation":
+        critical, kind = _first_loss_of_stability(rod, length, kind, values, swept, sols, options)
+        curve = eqx.tree_at(lambda c: c.critical, curve, jnp.asarray(critical, values.dtype))
+        curve = dataclasses.replace(curve, critical_kind=kind)
     return raise_if_failed(curve, curve.result, owner) if throw else curve
+
+
+#: Bisection steps that locate a loss of stability between two points of a curve.
+CRITICAL_BISECTIONS = 40
+
+
+def _first_loss_of_stability(rod, length, kind, values, swept, sols, options):
+    """(critical value of the swept control, kind) of the first stable -> unstable step of
+    a continuation curve, by bisection: each trial solve starts from the stable side.  A
+    branch point if the last unstable trial converged next to the stable side, a fold if
+    it did not converge or jumped away (no equilibrium nearby beyond it)."""
+    stable = np.asarray(sols.stable)
+    lost = np.flatnonzero(stable[:-1] & np.asarray(sols.ok[1:]) & ~stable[1:])
+    if not lost.size:
+        return np.nan, "none"
+    i = int(lost[0])
+    column = AXIAL_OBSERVABLES.index(swept)
+    start = Clamped(*unloaded_state(rod, 0.0))
+    take = lambda j: jax.tree.map(lambda a: a[j], sols)  # noqa: E731
+    good, bad = take(i), take(i + 1)
+    a, b = values[i], values[i + 1]
+    distance = lambda s, t: float(jnp.linalg.norm(jnp.concatenate([s.force - t.force, s.moment0 - t.moment0])))  # noqa: E731
+    first = distance(good, bad)
+    for _ in range(CRITICAL_BISECTIONS):
+        mid = 0.5 * (a + b)
+        trial = solve(rod, length, start, axial_end_condition(rod, length, kind, mid), good.warm_start(), None, options)
+        if bool(trial.ok) and float(trial.stability_margin) > 0:
+            a, good = mid, trial
+        else:
+            b, bad = mid, trial
+    close = bool(bad.ok) and distance(good, bad) < 1e-3 * max(first, 1e-300)
+    return float(0.5 * (a[column] + b[column])), "branch point" if close else "fold"
 
 
 def _swept_values(values, name, what):

@@ -31,13 +31,21 @@ from ._options import BoundaryValueOptions
 from ._root_finder import LevenbergMarquardtBroyden
 
 
-def _flow_one(theta, wrench, options: BoundaryValueOptions, ode_tol):
+def piece_flow(theta, wrench, options: BoundaryValueOptions, ode_tol):
     """Integrate one piece from the identity pose at the origin with local start wrench
     `wrench` (6,): the flat (18,) vector (p, R, n_end, m_end); NaN if the solve failed."""
     rod, piece = theta
     sol = options.integrate(rod, wrench[:3], wrench[3:], piece, ode_tol)
     out = jnp.concatenate([sol.x[-1], sol.frame[-1].reshape(9), sol.n[-1], sol.m[-1]])
     return jnp.where(sol.ok, out, jnp.nan)
+
+
+def flow_jacobian(theta, wrench, options: BoundaryValueOptions, ode_tol):
+    """Derivatives `(6, 18)` of one piece's flow (`piece_flow`: end position, frame, force and
+    moment in the start frame) along the six local start wrenches; `theta` = (rod, piece
+    length), `ode_tol` = (rtol, atol) of the tangent integrations."""
+    one = lambda w: piece_flow(theta, w, options, ode_tol)  # noqa: E731
+    return jax.vmap(lambda v: jax.jvp(one, (wrench,), (v,))[1])(jnp.eye(6, dtype=wrench.dtype))
 
 
 def _tangent_part(tree, tangents):
@@ -60,7 +68,7 @@ def per_piece(fn, xs):
 @eqx.filter_custom_jvp
 def _flows(wrench, theta, ode_tol, *, options):
     """Flows of all pieces, `(k, 18)`, from their local start wrenches `(k, 6)`."""
-    return per_piece(lambda w: _flow_one(theta, w, options, ode_tol), wrench)
+    return per_piece(lambda w: piece_flow(theta, w, options, ode_tol), wrench)
 
 
 @_flows.def_jvp
@@ -73,20 +81,14 @@ def _flows_jvp(primals, tangents, *, options):
     # for the derivatives of the solution, `implicit`), the flows at `ode_tol[:2]`.
     wrench, theta, ode_tol = primals
     t_wrench, t_theta, _ = tangents
-
-    def jacobian(w):
-        basis = jnp.eye(6, dtype=w.dtype)
-        one = lambda ww: _flow_one(theta, ww, options, ode_tol[2:])  # noqa: E731
-        return jax.vmap(lambda v: jax.jvp(one, (w,), (v,))[1])(basis)
-
-    out = per_piece(lambda w: _flow_one(theta, w, options, ode_tol), wrench)  # (k, 18)
-    jac = per_piece(jacobian, wrench)  # (k, 6, 18)
+    out = per_piece(lambda w: piece_flow(theta, w, options, ode_tol), wrench)  # (k, 18)
+    jac = per_piece(lambda w: flow_jacobian(theta, w, options, ode_tol[2:]), wrench)  # (k, 6, 18)
     t_out = jnp.zeros_like(out)
     if t_wrench is not None:
         t_out = t_out + jnp.einsum("kij,ki->kj", jac, t_wrench)
     if t_theta is not None and jax.tree.leaves(t_theta):
         diff, static, t_diff = _tangent_part(theta, t_theta)
-        flows = lambda d: per_piece(lambda w: _flow_one(eqx.combine(d, static), w, options, ode_tol), wrench)  # noqa: E731
+        flows = lambda d: per_piece(lambda w: piece_flow(eqx.combine(d, static), w, options, ode_tol), wrench)  # noqa: E731
         t_out = t_out + jax.jvp(flows, (diff,), (t_diff,))[1]
     return out, t_out
 
@@ -126,7 +128,7 @@ def _pieces(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: b
     if materialise:
         flows = _flows(local, theta, args.ode_tol, options=options)
     else:
-        flows = per_piece(lambda w: _flow_one(theta, w, options, args.ode_tol), local)
+        flows = per_piece(lambda w: piece_flow(theta, w, options, args.ode_tol), local)
     p, R, n_end, m_end = flows[:, :3], flows[:, 3:12].reshape(k, 3, 3), flows[:, 12:15], flows[:, 15:]
     x_end = xs + jnp.einsum("kij,kj->ki", frames, p)
     frame_end = frames @ R

@@ -23,6 +23,7 @@ also allows reverse mode.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import diffrax
@@ -33,15 +34,18 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._geometry import unloaded_state
+from .._kirchhoff import wrench_growth_rate
 from .._misc import finite_scalar, float_dtype, increasing_within, is_concrete, no_gradient
 from .._rod import check_one_rod
 from .._status import RESULTS, promote, raise_if_failed
 from ._bulk import length_scale, stiffness_scale
 from ._ends import LOADED, AbstractEnd, Clamped, EndCondition, end_condition
 from ._options import BoundaryValueOptions, with_settings
+from ._stability import PIECE_RESOLUTION, stability, stiffness_range
 from ._shooting import (
     ShootingArgs,
     WarmStart,
+    default_warm_start,
     free_nodes,
     implicit,
     initial,
@@ -89,11 +93,21 @@ class BoundaryValueSolution(eqx.Module):
     num_steps: Int[Array, ""]
     valid_input: Bool[Array, ""]
     tolerance: Float[Array, ""]
+    instability_index: Int[Array, ""]
+    stability_margin: Float[Array, ""]
+    unstable_direction: Float[Array, "6"]
+    stability_pieces: int = eqx.field(static=True)
+    continuation: int = eqx.field(static=True)
 
     @property
     def ok(self) -> Bool[Array, ""]:
         """Valid input, solver success and residual within tolerance."""
         return self.result == RESULTS.successful
+
+    @property
+    def stable(self) -> Bool[Array, ""]:
+        """A converged solve whose second variation is positive definite (index 0)."""
+        return self.ok & (self.instability_index == 0)
 
     @property
     def segments(self) -> int:
@@ -194,6 +208,13 @@ def solve(rod, length, start: Clamped, end: EndCondition, guess, saveat, options
     result = RESULTS.where(valid, result, RESULTS.invalid_input)
 
     out = _observe(args, options, N, M0, xs, frames, saveat, x_end[-1], frame_end[-1])
+    if options.stability_pieces > 0:
+        index, margin, push = stability(rod, length, end, N, M0, xs, frames, options)
+        defined = result == RESULTS.successful
+        index, margin = jnp.where(defined, index, -1), jnp.where(defined, margin, jnp.nan)
+        push = jnp.where(defined, push, 0.0)
+    else:
+        index, margin, push = jnp.asarray(-1, jnp.int32), jnp.asarray(jnp.nan, dtype), jnp.zeros(6, dtype)
     nan = lambda a: jnp.where(valid, a, jnp.nan)  # noqa: E731
     return BoundaryValueSolution(
         s=out[0],
@@ -216,6 +237,11 @@ def solve(rod, length, start: Clamped, end: EndCondition, guess, saveat, options
         num_steps=jnp.asarray(steps, jnp.int32),
         valid_input=valid,
         tolerance=tolerance,
+        instability_index=index,
+        stability_margin=margin,
+        unstable_direction=push,
+        stability_pieces=options.stability_pieces,
+        continuation=options.continuation,
     )
 
 
@@ -231,7 +257,7 @@ def solve_boundary_value(
     guess: BoundaryValueSolution | tuple[ArrayLike, ArrayLike] | str | None = None,
     saveat: ArrayLike | None = None,
     options: BoundaryValueOptions | None = None,
-    segments: int | None = None,
+    segments: int | str | None = None,
     continuation: int | None = None,
     method: str | None = None,
     atol: float | None = None,
@@ -241,6 +267,7 @@ def solve_boundary_value(
     solver: diffrax.AbstractSolver | None = None,
     max_ode_steps: int | None = None,
     adjoint: diffrax.AbstractAdjoint | None = None,
+    stability_pieces: int | None = None,
     throw: bool = True,
 ) -> BoundaryValueSolution:
     """Equilibrium of a finite rod clamped at $s = 0$ with a condition at $s = L$.
@@ -266,8 +293,11 @@ def solve_boundary_value(
     - `options`: a `BoundaryValueOptions` (shooting pieces, homotopy steps, root finder,
       tolerances, integrator, adjoint; default `BoundaryValueOptions()`); each of
       `segments`, `continuation`, `method`, `atol`, `max_steps`, `ode_rtol`, `ode_atol`,
-      `solver`, `max_ode_steps`, `adjoint` given here replaces that field.  Use more
-      `segments` for long rods in spatially unstable states (`wrench_growth_rate`).
+      `solver`, `max_ode_steps`, `adjoint`, `stability_pieces` given here replaces that
+      field.  Use more
+      `segments` for long rods in spatially unstable states (`wrench_growth_rate`), or
+      `segments="auto"`: $\\lceil\\lambda L/3\\rceil$ pieces from the growth rate $\\lambda$ of
+      the guess (eager calls only).
       Derivatives (`jax.jvp`/`jax.jacfwd`; `jax.grad` with `adjoint=diffrax.DirectAdjoint()`)
       are those of the implicit function theorem on the shooting equations.
     - `throw`: raise `SolverError` when the solve fails (an equinox runtime error inside
@@ -289,9 +319,13 @@ def solve_boundary_value(
     ```
     """
     owner = "solve_boundary_value"
+    auto = isinstance(segments, str)
+    if auto and segments != "auto":
+        raise ValueError(f"{owner}: segments must be an integer >= 1 or 'auto', got {segments!r}")
     options = with_settings(
-        options, segments=segments, continuation=continuation, method=method, atol=atol, max_steps=max_steps,
+        options, segments=None if auto else segments, continuation=continuation, method=method, atol=atol, max_steps=max_steps,
         ode_rtol=ode_rtol, ode_atol=ode_atol, solver=solver, max_ode_steps=max_ode_steps, adjoint=adjoint,
+        stability_pieces=stability_pieces,
     )
     check_one_rod(rod, owner)
     if not isinstance(end, AbstractEnd):
@@ -305,13 +339,14 @@ def solve_boundary_value(
         if any(jnp.ndim(leaf) > 2 or (jnp.ndim(leaf) == 2 and jnp.shape(leaf) != (3, 3)) for leaf in jax.tree.leaves(cond)):
             raise ValueError(f"{owner}: {name} must be unbatched (jax.vmap over conditions)")
     length = finite_scalar(length, "length", owner, positive=True)
+    default_guess = guess is None
     guess_kind = "helix"
     if isinstance(guess, str):
         if guess not in ("helix", "zero"):
             raise ValueError(f"{owner}: guess must be None, 'helix', 'zero', a solution or (n0, m0); got {guess!r}")
         guess_kind, guess = guess, None
     elif isinstance(guess, BoundaryValueSolution):
-        guess = guess.warm_start() if guess.segments == options.segments else (guess.n0, guess.m0)
+        guess = guess.warm_start()
     elif guess is not None:
         try:
             n0, m0 = (jnp.asarray(g, float_dtype()) for g in guess)
@@ -324,5 +359,124 @@ def solve_boundary_value(
         guess = (n0, m0)
     if saveat is not None:
         saveat = increasing_within(saveat, length, "saveat", owner, slack=1e-12)
+    if auto:
+        if not is_concrete(rod, length, start, end, guess):
+            raise ValueError(f"{owner}: segments='auto' needs concrete inputs (not under jax.jit or vmap)")
+        segments_needed, _, (n0, m0) = needed_segments(rod, length, start, end, guess, guess_kind)
+        pieces = options.stability_pieces and max(options.stability_pieces, stability_pieces_for(rod, length, n0, m0))
+        options = dataclasses.replace(options, segments=segments_needed, stability_pieces=min(pieces, MAX_STABILITY_PIECES))
+    if isinstance(guess, WarmStart) and guess.node_position.shape[0] != options.segments:
+        guess = (start.frame.T @ guess.force, start.frame.T @ guess.moment0)
     sol = solve(rod, length, start, end, guess, saveat, options, guess_kind)
+    if is_concrete(sol) and jnp.ndim(sol.residual) == 0:
+        sol = _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind)
+    if throw and is_concrete(sol) and jnp.ndim(sol.residual) == 0 and not bool(sol.ok):
+        raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _hint(sol, rod, length, start, end, guess, guess_kind))
     return raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _HINT) if throw else sol
+
+
+#: Spatial growth (lambda L) one shooting piece is trusted with (`wrench_growth_rate`: from
+#: the bulk guess single shooting converged up to lambda L ~ 3 and failed beyond ~ 4).
+GROWTH_PER_SEGMENT = 3.0
+
+
+@functools.partial(jax.jit, static_argnames="guess_kind")
+def _guess_wrench(rod, length, start, end, guess_kind):
+    warm = default_warm_start(rod, length, start, end, 1, guess_kind)
+    return start.frame.T @ warm.force, start.frame.T @ warm.moment0
+
+
+def needed_segments(rod, length, start, end, guess, guess_kind):
+    """Shooting pieces for `segments="auto"`, $\\lceil\\lambda L / 3\\rceil$, $\\lambda L$ and
+    the guess's local start wrench `(n0, m0)`, with $\\lambda$ the spatial growth rate
+    (`wrench_growth_rate`) of that wrench (concrete)."""
+    if guess is None:
+        n0, m0 = _guess_wrench(rod, length, start, end, guess_kind)
+    elif isinstance(guess, WarmStart):
+        n0, m0 = start.frame.T @ guess.force, start.frame.T @ guess.moment0
+    else:
+        n0, m0 = guess
+    growth = float(wrench_growth_rate(rod, n0, m0)) * float(length)
+    segments = max(1, int(np.ceil(growth / GROWTH_PER_SEGMENT))) if np.isfinite(growth) else 1
+    return segments, growth, (n0, m0)
+
+
+def _hint(sol, rod, length, start, end, guess, guess_kind) -> str:
+    """`_HINT`, with the pieces the guess's spatial growth asks for where they are more."""
+    needed, growth, _ = needed_segments(rod, length, start, end, guess, guess_kind)
+    if needed <= sol.segments:
+        return _HINT
+    return (
+        f"; errors in the guess grow like exp(lambda L) along the rod, lambda L = {growth:.1f} "
+        f"(wrench_growth_rate): use segments={needed} or more (now {sol.segments}; or segments='auto'), "
+        "continuation=, a better guess=, or throw=False to inspect `result` and `residual`"
+    )
+
+
+#: Homotopy steps tried, in turn, when the default guess fails or finds an unstable state.
+FALLBACK_CONTINUATION = (16,)
+
+#: The most pieces of a stability test (doubled from `stability_pieces` until resolved).
+MAX_STABILITY_PIECES = 256
+
+
+def stability_pieces_for(rod, length, force, moments) -> int:
+    """Pieces of the stability test that resolve a wrench (`PIECE_RESOLUTION`): lab `force`
+    `(3,)` and the moments `(..., 3)` along the rod; a power of two (concrete)."""
+    k_min = float(stiffness_range(rod)[0])
+    largest = float(jnp.max(jnp.linalg.norm(jnp.reshape(moments, (-1, 3)), axis=-1)))
+    rate = np.sqrt(float(jnp.linalg.norm(force)) / k_min) + largest / k_min
+    return int(2 ** np.ceil(np.log2(max(1.0, 1.25 * rate * float(length) / PIECE_RESOLUTION))))
+
+
+def _solution_pieces(rod, length, sol: BoundaryValueSolution) -> int:
+    """`stability_pieces_for` the wrench of a solution (its shooting nodes and end)."""
+    moments = sol.moment0[None] - jnp.cross(sol.node_position - sol.node_position[0][None], sol.force[None])
+    return stability_pieces_for(rod, length, sol.force, jnp.concatenate([moments, sol.end_moment[None]]))
+
+
+def _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind) -> BoundaryValueSolution:
+    """The eager defaults that make a solve land on the physical state: more stability
+    pieces where the test does not resolve the wrench, and, from the default guess, when
+    the direct solve converges to an unstable equilibrium, a solve pushed to either side
+    along its most unstable direction; when that fails too, or the direct solve did,
+    homotopy continuation from the unloaded rod (`FALLBACK_CONTINUATION`)."""
+    moment_loaded = bool(end.kind == LOADED) and bool(jnp.any(end.moment != 0))
+
+    def resolved(sol, options):
+        pieces = options.stability_pieces
+        while bool(sol.ok) and int(sol.instability_index) < 0 and not moment_loaded and 0 < pieces < MAX_STABILITY_PIECES:
+            pieces = min(max(2 * pieces, _solution_pieces(rod, length, sol)), MAX_STABILITY_PIECES)
+            options = dataclasses.replace(options, stability_pieces=pieces)
+            warm = sol.warm_start() if sol.segments == options.segments else None
+            sol = solve(rod, length, start, end, warm, saveat, options, guess_kind)
+        return sol
+
+    sol = resolved(sol, options)
+    acceptable = lambda s: bool(s.ok) and int(s.instability_index) <= 0  # noqa: E731
+    if not default_guess or options.continuation > 0 or acceptable(sol):
+        return sol
+    if bool(sol.ok):
+        # Unstable: push along the most unstable direction, to both sides, by two sizes.
+        for sign in (1.0, -1.0, 4.0, -4.0):
+            N, M0 = sol.force + sign * sol.unstable_direction[:3], sol.moment0 + sign * sol.unstable_direction[3:]
+            push = (start.frame.T @ N, start.frame.T @ M0)
+            trial = resolved(solve(rod, length, start, end, push, saveat, options, guess_kind), options)
+            if acceptable(trial):
+                return trial
+    for steps in FALLBACK_CONTINUATION:
+        homotopy = dataclasses.replace(options, continuation=steps)
+        trial = resolved(solve(rod, length, start, end, None, saveat, homotopy, guess_kind), homotopy)
+        if acceptable(trial) or (bool(trial.ok) and not bool(sol.ok)):
+            sol = trial
+        if acceptable(sol):
+            break
+    return sol
+    for steps in FALLBACK_CONTINUATION:
+        homotopy = dataclasses.replace(options, continuation=steps)
+        trial = resolved(solve(rod, length, start, end, None, saveat, homotopy, guess_kind), homotopy)
+        if acceptable(trial) or (bool(trial.ok) and not bool(sol.ok)):
+            sol = trial
+        if acceptable(sol):
+            break
+    return sol

@@ -303,7 +303,7 @@ class EndResponseModel(AbstractForwardModel):
         given = {AXIAL_OBSERVABLES[i]: self.values[:, i] for i in test.controls}
         curve = axial_response(
             rod, self.length, **given, mode="independent", rotation_hint=self.values[:, 3], bulk=False,
-            options=BoundaryValueOptions(segments=self.segments),
+            options=BoundaryValueOptions(segments=self.segments, stability_pieces=0),
         )
         predicted = {AXIAL_OBSERVABLES[i]: getattr(curve, AXIAL_OBSERVABLES[i]) for i in test.responses}
         prediction = jnp.stack(list(predicted.values()), -1)
@@ -371,7 +371,7 @@ class ShapeModel(AbstractForwardModel):
         return True
 
     def residuals(self, rod, extra):
-        options = BoundaryValueOptions(segments=self.segments)
+        options = BoundaryValueOptions(segments=self.segments, stability_pieces=0)  # shapes only
 
         def one(end):
             sol = solve_boundary_value(

@@ -1,0 +1,193 @@
+"""Stability of finite rods (`_bvp/_stability.py`) against closed forms derived here and an
+independent brute-force second variation (`tests/discrete_rod.py`, numpy/scipy only).
+
+Closed forms (straight rod, bending stiffness B, length L, clamped at s = 0):
+
+- dead compressive end load P, free end (clamped-free): the Jacobi equation $B\\psi'' + P\\psi = 0$,
+  $\\psi(0) = 0$, $\\psi'(L) = 0$ has a solution first at $P = \\pi^2 B / (4L^2)$, then at
+  $(2j+1)^2$ times that; with $K_1 \\ne K_2$ each bending plane on its own;
+- the end frame held, the end free to slide sideways (clamped-sliding): $\\psi(0) = \\psi(L) =
+  0$ gives $P = \\pi^2 B/L^2$;
+- both ends clamped, no shortening, twisted by a moment M (Greenhill): the lateral deflection
+  $w = y + iz$ obeys $Bw'''' - iMw''' = 0$; with $w = w' = 0$ at both ends the determinant
+  vanishes when $e^{i\\theta}(1 - i\\theta/2) = 1 + i\\theta/2$, $\\theta = ML/B$, i.e.
+  $\\tan(\\theta/2) = \\theta/2$: $\\theta = 8.98682$; the mode and its rotation by 90° about the
+  axis make it a double one (the index jumps by 2).
+"""
+
+import mpmath
+import numpy as np
+import pytest
+import scipy.integrate
+import scipy.optimize
+
+import helixrod
+from discrete_rod import centreline, equilibrium, hessian_eigenvalues
+
+L = 1.0
+
+
+def margin(rod, end, **kwargs):
+    """The margin of the state the bulk guess leads to (the straight one, here): the default
+    solve would leave an unstable state for a buckled one."""
+    return float(helixrod.solve_boundary_value(rod, L, end=end, guess="helix", throw=False, **kwargs).stability_margin)
+
+
+def critical(fn, lo, hi):
+    return scipy.optimize.brentq(fn, lo, hi, xtol=1e-13)
+
+
+def test_euler_clamped_free():
+    rod = helixrod.Rod(1.0, 1.0, 0.8)
+    p_c = np.pi**2 / 4
+    load = lambda P: helixrod.Loaded(force=(0.0, 0.0, -P))  # noqa: E731
+    assert critical(lambda P: margin(rod, load(P)), 0.5 * p_c, 1.5 * p_c) == pytest.approx(p_c, rel=1e-6)
+    below = helixrod.solve_boundary_value(rod, L, end=load(0.9 * p_c))
+    above = helixrod.solve_boundary_value(rod, L, end=load(1.1 * p_c), guess="helix")
+    assert bool(below.stable) and int(below.instability_index) == 0
+    # The straight state is still an equilibrium above the load, now unstable in two planes.
+    assert bool(above.ok) and not bool(above.stable) and int(above.instability_index) == 2
+    # Smooth: linear in the load near the critical one, as the Rayleigh quotient is.
+    margins = [margin(rod, load(f * p_c)) for f in (0.8, 0.9, 1.0, 1.1)]
+    assert np.allclose(np.diff(margins), np.diff(margins)[0], rtol=1e-3)
+
+
+def test_buckled_cantilever_by_default():
+    """Above the Euler load the straight state is unstable; the default solve pushes along
+    its unstable direction onto the buckled elastica: with $k = \\sin(\\alpha/2)$ of the tip
+    angle $\\alpha$, $K(k) = L\\sqrt{P/B}$, the tip moves sideways by $2k\\sqrt{B/P}$ and
+    lies at $z = \\sqrt{B/P}\\,(2E(k) - K(k))$ (complete elliptic integrals)."""
+    rod = helixrod.Rod(1.0, 1.0, 0.8)
+    for factor in (1.1, 1.5):
+        P = factor * np.pi**2 / 4
+        sol = helixrod.solve_boundary_value(rod, L, end=helixrod.Loaded(force=(0.0, 0.0, -P)))
+        k = float(mpmath.findroot(lambda k: mpmath.ellipk(k**2) - np.sqrt(P) * L, (0.01, 0.999), solver="anderson"))
+        z = float((2 * mpmath.ellipe(k**2) - mpmath.ellipk(k**2)) / np.sqrt(P))
+        # Neutral, not unstable: the buckled isotropic rod may turn about the load line.
+        assert bool(sol.stable) and abs(float(sol.stability_margin)) < 1e-6
+        assert np.hypot(*np.asarray(sol.end_position[:2])) == pytest.approx(2 * k / np.sqrt(P), abs=1e-8)
+        assert float(sol.end_position[2]) == pytest.approx(z, abs=1e-8)
+
+
+def test_index_rises_one_per_mode_of_an_anisotropic_rod():
+    rod = helixrod.Rod(1.0, 2.0, 0.8)  # critical loads p_c (1, 2, 9, 18, 25, ...)
+    p_c = np.pi**2 / 4
+    for factor, index in [(0.5, 0), (1.5, 1), (5.0, 2), (12.0, 3), (20.0, 4)]:
+        end = helixrod.Loaded(force=(0.0, 0.0, -factor * p_c))
+        sol = helixrod.solve_boundary_value(rod, L, end=end, guess="helix", throw=False)
+        assert int(sol.instability_index) == index, factor
+
+
+def test_euler_clamped_sliding():
+    rod = helixrod.Rod(1.0, 1.0, 0.8)
+    end = lambda P: helixrod.Tweezer(np.eye(3), (0.0, 0.0, -P))  # noqa: E731
+    p_c = np.pi**2
+    assert critical(lambda P: margin(rod, end(P)), 0.5 * p_c, 1.5 * p_c) == pytest.approx(p_c, rel=1e-6)
+
+
+def test_greenhill_twisted_shaft():
+    # C = 4 B: the critical twist angle M L / C stays within half a turn of the guess.
+    rod = helixrod.Rod(1.0, 1.0, 4.0)
+    half = scipy.optimize.brentq(lambda x: np.tan(x) - x, 4.0, 4.6)
+    theta_c = 2 * half  # 8.98682
+    end = lambda M: helixrod.Clamped((0.0, 0.0, L), helixrod.so3_exp(np.array([0.0, 0.0, M * L / 4.0])))  # noqa: E731
+    assert critical(lambda M: margin(rod, end(M)), 8.0, 10.0) == pytest.approx(theta_c, rel=1e-6)
+    above = helixrod.solve_boundary_value(rod, L, end=end(1.05 * theta_c), guess="helix")
+    assert int(above.instability_index) == 2
+
+
+def test_matches_a_discrete_second_variation():
+    """A straight, twisted rod with anisotropy and bend-twist coupling under a compressive
+    tweezer force: the critical force of the conjugate-point test and of the brute-force
+    discrete Hessian (n = 40 segments, O(h^2)) agree, as do the indices on either side."""
+    rod = helixrod.Rod(1.0, 1.6, 0.9, K13=0.2, uhat=(0.0, 0.0, 0.5))
+    K, uhat = np.asarray(rod.K), np.asarray(rod.uhat)
+    start = tuple(np.asarray(a) for a in helixrod.unloaded_state(rod, 0.0))  # the canonical placement
+    end_frame = np.asarray(helixrod.unloaded_state(rod, L)[1])
+    n = 40
+    mid = (np.arange(n) + 0.5) * (L / n)
+
+    def discrete(P):
+        end = helixrod.Tweezer(end_frame, (0.0, 0.0, -P))
+        sol = helixrod.solve_boundary_value(rod, L, end=end, guess="helix", saveat=mid)
+        force = np.array([0.0, 0.0, -P])
+        frames, _, _ = equilibrium(K, uhat, L, n, "tweezer", *start, end_frame=end_frame, force=force, frames_guess=np.asarray(sol.frame))
+        return hessian_eigenvalues(K, uhat, L, n, "tweezer", frames, *start, end_frame=end_frame, force=force)
+
+    ours = critical(lambda P: margin(rod, helixrod.Tweezer(end_frame, (0.0, 0.0, -P))), 8.0, 12.0)
+    theirs = critical(lambda P: discrete(P)[0], 8.0, 12.0)
+    assert ours == pytest.approx(theirs, rel=2e-3)
+    for P in (0.9 * ours, 1.1 * ours, 1.5 * ours):
+        end = helixrod.Tweezer(end_frame, (0.0, 0.0, -P))
+        sol = helixrod.solve_boundary_value(rod, L, end=end, guess="helix", throw=False)
+        assert int(sol.instability_index) == int(np.sum(discrete(P) < 0)), P
+
+
+def test_wrong_branch_is_flagged_and_matches_the_discrete_index():
+    """A cantilever under a large side load: the bulk guess alone lands on the branch bent
+    back against the load; both tests call it unstable with two unstable directions, and
+    the physical branch (the default) stable."""
+    rod = helixrod.Rod(1.0, 1.0, 0.8)
+    K, uhat = np.asarray(rod.K), np.asarray(rod.uhat)
+    n, P = 40, 12.0
+    force = np.array([P, 0.0, 0.0])
+    for guess, index, tip_x in (("helix", 2, -0.47), (None, 0, 0.83)):
+        sol = helixrod.solve_boundary_value(rod, L, end=helixrod.Loaded(force), guess=guess, saveat=(np.arange(n) + 0.5) / n)
+        assert int(sol.instability_index) == index
+        assert float(sol.end_position[0]) == pytest.approx(tip_x, abs=0.01)
+        frames, _, _ = equilibrium(K, uhat, L, n, "loaded", np.zeros(3), np.eye(3), force=force, frames_guess=np.asarray(sol.frame))
+        assert centreline(frames, L, np.zeros(3))[-1][0] == pytest.approx(tip_x, abs=0.01)
+        lam = hessian_eigenvalues(K, uhat, L, n, "loaded", frames, np.zeros(3), np.eye(3), force=force)
+        assert int(np.sum(lam < 0)) == index
+
+
+def _elastica_tip(load):
+    """Tip (x, z) of a clamped cantilever of unit length and stiffness, straight along z,
+    under a dead load `load` along x.  With $\\psi$ the angle of the tangent from z,
+    $\\psi'' = -P\\cos\\psi$, $\\psi(0) = 0$, $\\psi'(1) = 0$; its first integral
+    $\\psi'^2 = 2P(\\sigma_1 - \\sin\\psi)$, $\\sigma_1 = \\sin\\psi(1)$, and
+    $\\sin\\psi = \\sigma_1(1 - t^2)$ give the smooth integrals
+    $1 = c\\int_0^1 dt/w$, $x = c\\int_0^1 \\sigma_1(1 - t^2)\\,dt/w$, $z = c$, with
+    $c = \\sqrt{2\\sigma_1/P}$ and $w = \\sqrt{1 - \\sigma_1^2(1 - t^2)^2}$."""
+    P = float(load)
+
+    def integral(f, sigma):
+        w = lambda t: np.sqrt(1 - sigma**2 * (1 - t**2) ** 2)  # noqa: E731
+        return np.sqrt(2 * sigma / P) * scipy.integrate.quad(lambda t: f(sigma, t) / w(t), 0.0, 1.0, epsabs=1e-13, epsrel=1e-13, limit=200)[0]
+
+    sigma = scipy.optimize.brentq(lambda q: integral(lambda q, t: 1.0, q) - 1.0, 1e-12, 1 - 1e-15, xtol=1e-16)
+    return integral(lambda q, t: q * (1 - t**2), sigma), np.sqrt(2 * sigma / P)
+
+
+@pytest.mark.slow
+def test_large_deflection_cantilever_from_the_defaults():
+    """Side loads P L^2 / B from 0.5 to 20 from the default settings: every solve ok, stable
+    and on the physical branch (the elliptic-integral tip).  (The bulk guess alone fails at
+    7 of 40 loads and lands on the bent-back branch at 16.)"""
+    rod = helixrod.Rod(1.0, 1.0, 0.8)
+    for P in np.linspace(0.5, 20.0, 40):
+        sol = helixrod.solve_boundary_value(rod, L, end=helixrod.Loaded((P, 0.0, 0.0)))
+        assert bool(sol.stable), P
+        x, z = _elastica_tip(P)
+        assert np.allclose(np.asarray(sol.end_position), [x, 0.0, z], atol=1e-8), P
+
+
+def test_cantilever_where_the_bulk_guess_fails():
+    rod = helixrod.Rod(1.0, 1.0, 0.8)
+    for P in (7.0, 14.0):
+        direct = helixrod.solve_boundary_value(rod, L, end=helixrod.Loaded((P, 0.0, 0.0)), guess="helix", throw=False)
+        sol = helixrod.solve_boundary_value(rod, L, end=helixrod.Loaded((P, 0.0, 0.0)))
+        assert not (bool(direct.ok) and bool(direct.stable))
+        assert bool(sol.stable) and sol.continuation > 0
+        x, z = _elastica_tip(P)
+        assert np.allclose(np.asarray(sol.end_position), [x, 0.0, z], atol=1e-8)
+
+
+def test_undefined_stability_is_flagged():
+    rod = helixrod.Rod(1.0, 1.0, 0.8)
+    # A dead end moment is not conservative: no second variation to test.
+    sol = helixrod.solve_boundary_value(rod, L, end=helixrod.Loaded(moment=(0.1, 0.0, 0.0)))
+    assert bool(sol.ok) and int(sol.instability_index) == -1 and np.isnan(float(sol.stability_margin))
+    assert not bool(sol.stable)
+    off = helixrod.solve_boundary_value(rod, L, end=helixrod.Loaded(force=(0.1, 0.0, 0.0)), stability_pieces=0)
+    assert bool(off.ok) and int(off.instability_index) == -1

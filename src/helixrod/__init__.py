@@ -16,6 +16,7 @@ from ._bvp import (
     EndCondition as EndCondition,
     Loaded as Loaded,
     ResponseCurve as ResponseCurve,
+    StabilityAtlas as StabilityAtlas,
     Tweezer as Tweezer,
     axial_ends as axial_ends,
     axial_response as axial_response,
@@ -23,6 +24,7 @@ from ._bvp import (
     force_extension as force_extension,
     rotation_response as rotation_response,
     solve_boundary_value as solve_boundary_value,
+    stability_atlas as stability_atlas,
 )
 from ._cache import enable_compilation_cache as enable_compilation_cache
 from ._constitutive import StrainEnergyRod as StrainEnergyRod

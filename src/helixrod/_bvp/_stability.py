@@ -183,8 +183,7 @@ def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: Bounda
     q = -(-options.stability_pieces // k)
     p, h = k * q, length / (k * q)
     x0 = xs[0]
-    k_min, k_mean = stiffness_range(rod)
-    compliance = EXTENSIBILITY * h**3 / k_mean
+    compliance = EXTENSIBILITY * h**3 / stiffness_range(rod)[1]
 
     def steps_of(local):
         u = rod.twist(local[3:])
@@ -204,8 +203,17 @@ def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: Bounda
     _, (transfers, start_moments, end_moments, ends) = per_piece(
         lambda i: jax.lax.scan(sub_piece, (xs[i], frames[i]), None, length=q), jnp.arange(k)
     )
-    transfers = transfers.reshape(p, 12, 12)
-    H, free = second_variation(rod, length, end, N, ends[-1, -1], transfers)
+    largest_moment = jnp.maximum(jnp.max(start_moments), jnp.max(end_moments))
+    return assess(rod, length, end, N, transfers.reshape(p, 12, 12), ends[-1, -1], largest_moment)
+
+
+def assess(rod, length, end: EndCondition, N, transfers, end_position, largest_moment):
+    """(instability_index, stability_margin, unstable_direction) from the pieces' transfer
+    matrices `(p, 12, 12)` (as `stability`); `largest_moment`: the largest moment along the
+    rod (whether the pieces resolve the wrench)."""
+    p = transfers.shape[0]
+    h = length / p
+    H, free = second_variation(rod, length, end, N, end_position, transfers)
     eigenvalues, vectors = jnp.linalg.eigh(H)
     margin = eigenvalues[0]
     # The most unstable direction as the start-wrench change that produces it to first
@@ -216,7 +224,7 @@ def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: Bounda
     mode = UNSTABLE_STEP * mode / jnp.where(size > 0, size, 1.0)
     push = jnp.linalg.solve(transfers[0, :6, 6:], mode[0])
     index = jnp.sum(eigenvalues < -NEUTRAL).astype(jnp.int32)
-    largest_moment = jnp.maximum(jnp.max(start_moments), jnp.max(end_moments))
+    k_min = stiffness_range(rod)[0]
     resolved = h * (jnp.sqrt(jnp.linalg.norm(N) / k_min) + largest_moment / k_min) <= PIECE_RESOLUTION
     moment_free = ~((end.kind == LOADED) & (jnp.linalg.norm(end.moment) > 0))
     defined = moment_free & resolved & jnp.all(jnp.isfinite(H))

@@ -508,3 +508,55 @@ def plot_tweezer_moduli(moduli, path=None, *, stderr=None, twlc=None):
         ax.legend(fontsize=7)
     fig.suptitle("the molecule's moduli along the force range" + (" ($\\pm 1\\sigma$)" if stderr is not None else ""))
     return _finish(fig, path)
+
+
+_STABILITY_CLASSES = (
+    # (label, colour) for: no register / not resolved, stable, index 1, index >= 2.
+    ("no register, or not resolved", "#DDDDDD"),
+    ("stable", OKABE_ITO[2]),
+    ("unstable, 1 direction", OKABE_ITO[0]),
+    ("unstable, 2 or more", OKABE_ITO[5]),
+)
+
+
+def plot_stability_atlas(atlas, path=None, *, slot=0):
+    """A `StabilityAtlas` over the $(\\tau, \\kappa)$ plane for one register `slot` (0: the
+    global minimum of $W$ on the circle, as `helix_equilibria`): left, whether the helix of
+    length $L$ clamped by its own wrench is stable (and how many unstable directions it
+    has), with the pointwise criterion of `helix_equilibria` (a minimum of $W$ on the
+    circle) outlined; right, the critical length at which it first loses stability, on a
+    log scale, white where it stays stable up to `max_length`."""
+    from matplotlib.colors import BoundaryNorm, ListedColormap, LogNorm
+    from matplotlib.patches import Patch
+
+    if not 0 <= slot < 4:
+        raise ValueError(f"plot_stability_atlas: slot must be 0..3, got {slot}")
+    tau, kappa = np.asarray(atlas.tau, float), np.asarray(atlas.kappa, float)
+    if tau.ndim != 2:
+        raise ValueError(f"plot_stability_atlas: needs a 2-d (kappa, tau) grid, got shape {tau.shape}")
+    index = np.asarray(atlas.instability_index[..., slot])
+    valid = np.asarray(atlas.valid[..., slot]) & (index >= 0)
+    cls = np.where(~valid, 0, np.where(index == 0, 1, np.where(index == 1, 2, 3)))
+    fig, axes = _figure(2)
+    cmap = ListedColormap([c for _, c in _STABILITY_CLASSES])
+    axes[0].pcolormesh(tau, kappa, cls, cmap=cmap, norm=BoundaryNorm(np.arange(-0.5, 4.5), cmap.N), shading="nearest", rasterized=True)
+    pointwise = np.asarray(atlas.pointwise_stable[..., slot]).astype(float)
+    handles = [Patch(facecolor=_STABILITY_CLASSES[i][1], edgecolor="k", lw=0.4, label=_STABILITY_CLASSES[i][0]) for i in sorted(set(np.unique(cls).tolist()))]
+    if 0 < pointwise.mean() < 1:
+        axes[0].contour(tau, kappa, pointwise, levels=[0.5], colors="k", linewidths=1.0, linestyles="--")
+        handles.append(Patch(facecolor="none", edgecolor="k", ls="--", label="edge of pointwise stability"))
+    axes[0].legend(handles=handles, loc="upper left", fontsize=7, framealpha=0.9)
+    axes[0].set_title(f"clamped helix of length $L = {float(atlas.length):.4g}$, register slot {slot}")
+    critical = np.asarray(atlas.critical_length[..., slot], float)
+    finite = critical[np.isfinite(critical) & (critical > 0)]
+    if finite.size:
+        mesh = axes[1].pcolormesh(tau, kappa, np.where(np.isfinite(critical), critical, np.nan), cmap="cividis",
+                                  norm=LogNorm(finite.min(), max(finite.max(), finite.min() * 1.01)), shading="nearest", rasterized=True)
+        fig.colorbar(mesh, ax=axes[1], label="critical length $L_c$")
+        if finite.min() < float(atlas.length) < finite.max():
+            axes[1].contour(tau, kappa, np.nan_to_num(critical, nan=0.0, posinf=1e300), levels=[float(atlas.length)], colors=[OKABE_ITO[1]], linewidths=1.2)
+    axes[1].set_title(f"first loss of stability (white: stable up to {float(atlas.max_length):.4g})")
+    for ax in axes:
+        ax.set_xlabel("torsion $\\tau$")
+        ax.set_ylabel("curvature $\\kappa$")
+    return _finish(fig, path)

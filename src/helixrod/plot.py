@@ -13,6 +13,7 @@ from ._plot import (
     plot_response as plot_response,
     plot_rod_atlas as plot_rod_atlas,
     plot_sensitivity as plot_sensitivity,
+    plot_stability_atlas as plot_stability_atlas,
     plot_stable_wrench as plot_stable_wrench,
     plot_sweep_summary as plot_sweep_summary,
     plot_tweezer_fit as plot_tweezer_fit,

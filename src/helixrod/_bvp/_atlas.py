@@ -37,7 +37,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._equilibria import helix_equilibria
 from .._misc import check_integer, finite_scalar, float_dtype
-from .._lie import hat
+from .._lie import hat, so3_exp
 from .._rod import check_one_rod
 from ._ends import CLAMPED, end_condition
 from ._stability import EXTENSIBILITY, assess, stiffness_range
@@ -99,7 +99,7 @@ def uniform_transfers(rod, n, m, length, pieces: int):
     h = length / pieces
     u = rod.twist(m)
     T_body = _body_transfer(rod, n, m, h)  # with the integrated test's tiny extensibility
-    frames = jax.vmap(lambda j: jax.scipy.linalg.expm(hat(u) * (j * h)))(jnp.arange(pieces + 1))
+    frames = jax.vmap(lambda j: so3_exp(u * (j * h)))(jnp.arange(pieces + 1))
 
     def lab(D0, D1):
         return jax.scipy.linalg.block_diag(D1, D1, D1, D1) @ T_body @ jax.scipy.linalg.block_diag(D0, D0, D0, D0).T
@@ -107,7 +107,7 @@ def uniform_transfers(rod, n, m, length, pieces: int):
     transfers = jax.vmap(lab)(frames[:-1], frames[1:])
     # The centreline's end: the helix's screw motion, from the same exponential.
     se3 = jnp.zeros((4, 4), n.dtype).at[:3, :3].set(hat(u)).at[3 - 1, 3].set(1.0)
-    end_position = jax.scipy.linalg.expm(se3 * length)[:3, 3]
+    end_position = _expm(se3 * length)[:3, 3]
     return transfers, n, end_position
 
 
@@ -116,12 +116,30 @@ def uniform_transfers(rod, n, m, length, pieces: int):
 CRITICAL_SAMPLES = 64
 
 
+#: Fixed scaling and squaring of `_expm`: exact to round-off for $\\|A\\|_1 \\le$ `EXPM_RANGE`.
+EXPM_SQUARINGS, EXPM_TERMS, EXPM_RANGE = 16, 12, 600.0
+
+
+def _expm(A):
+    """$e^A$ by a Taylor polynomial of $A/2^{16}$ and 16 squarings: no data-dependent loop
+    (`jax.scipy.linalg.expm` chooses its squarings from the norm, a loop that, batched,
+    was measured to stall); NaN beyond `EXPM_RANGE`."""
+    scaled = A / 2.0**EXPM_SQUARINGS
+    eye = jnp.eye(A.shape[-1], dtype=A.dtype)
+    E = eye
+    for k in range(EXPM_TERMS, 0, -1):  # Horner: I + X/1 (I + X/2 (I + ...))
+        E = eye + scaled @ E / k
+    for _ in range(EXPM_SQUARINGS):
+        E = E @ E
+    return jnp.where(jnp.sum(jnp.abs(A), axis=0).max() <= EXPM_RANGE, E, jnp.nan)
+
+
 def _body_transfer(rod, n, m, s):
     """Transfer matrix of a piece of length `s` in body coordinates at its two ends (lab
     ones for a start at the identity frame, up to the end's rotation)."""
     zero, eye = jnp.zeros((3, 3), n.dtype), jnp.eye(3, dtype=n.dtype)
     to_lab = jnp.block([[eye, zero, zero, zero], [zero, eye, zero, zero], [zero, -hat(n), eye, zero], [zero, -hat(m), zero, eye]])
-    E = jax.scipy.linalg.expm(_body_variation_matrix(rod, n, m) * s)
+    E = _expm(_body_variation_matrix(rod, n, m) * s)
     T = to_lab @ E @ jnp.linalg.inv(to_lab)
     return T.at[:3, 6:9].add(EXTENSIBILITY * s**3 / stiffness_range(rod)[1] * eye)
 

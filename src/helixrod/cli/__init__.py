@@ -1,11 +1,12 @@
-"""Command line of helixrod: ``helixrod demo | sweep | fit | force-extension | tweezer-fit``.
+"""Command line of helixrod: ``helixrod demo | sweep | fit | force-extension | tweezer-fit |
+stability``.
 
 `app` is the typer application (the ``helixrod`` entry point, ``python -m helixrod.cli``).
 Its callback turns on float64 (``jax_enable_x64``) once, before any command runs: every
 command computes and prints in float64; and, unless ``--no-cache``, the persistent
 compilation cache (`helixrod.enable_compilation_cache`), so that a second run of a command
 loads its compiled programs instead of compiling them again.  One private module per
-command (`_demo`, `_sweep`, `_fit`, `_force_extension`, `_tweezer_fit`); `_numbers` parses
+command (`_demo`, `_sweep`, `_fit`, `_force_extension`, `_tweezer_fit`, `_stability`); `_numbers` parses
 every number spec (comma-separated lists and ``start:stop:num`` grid axes), `_paths`
 checks input and output files before anything runs, `_report` prints the tables of a fit;
 figures are drawn only by the plotting module (`helixrod.plot`).
@@ -19,6 +20,7 @@ from ._demo import demo as demo, demo_dna_fit as demo_dna_fit, demo_fit as demo_
 from ._fit import example_data_path as example_data_path, fit as fit
 from ._force_extension import force_extension_command as force_extension_command
 from ._report import print_fit as print_fit
+from ._stability import stability_command as stability_command
 from ._sweep import sweep_command as sweep_command
 from ._tweezer_fit import tweezer_fit_command as tweezer_fit_command
 
@@ -50,3 +52,4 @@ app.command(name="sweep")(sweep_command)
 app.command()(fit)
 app.command(name="force-extension")(force_extension_command)
 app.command(name="tweezer-fit")(tweezer_fit_command)
+app.command(name="stability")(stability_command)

@@ -97,7 +97,7 @@ def bench_cost(repeats):
     for name, (rod, length, kwargs) in cost_problems().items():
         row = dict(problem=name)
         for label, pieces in (("plain", 0), ("stability", None)):
-            def run(pieces=pieces):
+            def run(pieces=pieces, rod=rod, length=length, kwargs=kwargs):
                 return hr.solve_boundary_value(rod, length, stability_pieces=pieces, **kwargs)
 
             jax.clear_caches()  # the three problems share one program (one uniform end condition): compile each
@@ -133,7 +133,7 @@ def bench_critical():
     for name, rod, end, exact in cases:
         calls = [0]
 
-        def margin(p, rod=rod, end=end):
+        def margin(p, rod=rod, end=end, calls=calls):
             calls[0] += 1
             return float(hr.solve_boundary_value(rod, 1.0, end=end(p), guess="helix", throw=False).stability_margin)
 
@@ -237,6 +237,7 @@ def bench_atlas(size, samples, repeats):
     fine = {f: hr.stability_atlas(ATLAS_ROD, pk, pt, f * ATLAS_LENGTH, critical_length=False, pieces=64)
             for f in (1.0, 0.97, 1.03)}
     fine_index = {f: np.asarray(a.instability_index)[np.arange(len(picks)), slot] for f, a in fine.items()}
+    fine_margin = np.asarray(fine[1.0].stability_margin)[np.arange(len(picks)), slot]
     n_all, u_all = np.asarray(eq.n).reshape(-1, 4, 3), np.asarray(eq.u).reshape(-1, 4, 3)
     rows, times, crit_times = [], [], []
     for j, (p, s) in enumerate(picks):
@@ -251,7 +252,8 @@ def bench_atlas(size, samples, repeats):
         except RuntimeError:
             brute, lam0, drift = None, math.nan, math.nan
         times.append(time.perf_counter() - t0)
-        row = dict(kappa=float(pk[j]), tau=float(pt[j]), slot=s, index=i16, index_64=i64, margin=m16, critical_length=lc,
+        row = dict(kappa=float(pk[j]), tau=float(pt[j]), slot=s, index=i16, index_64=i64, margin=m16,
+                   margin_64=float(fine_margin[j]), critical_length=lc,
                    brute_index=brute, brute_smallest=lam0, multiplier_drift=drift, near_conjugate_point=near,
                    brute_s=times[-1])
         if brute is not None and 0 < lc < ATLAS_LENGTH:
@@ -266,7 +268,8 @@ def bench_atlas(size, samples, repeats):
         agree = "" if brute is None else ("=" if brute == (i16 if i16 >= 0 else i64) else "DIFFERS")
         lc_text = f", L_c {lc:.4f} vs brute {row['brute_critical_length']:.4f}" if row.get("brute_critical_length") else ""
         print(f"    kappa {pk[j]:.3f} tau {pt[j]:+.3f} slot {s}: index {i16:2d} (64 pieces {i64}) brute {brute} {agree}"
-              f"{' [next to a conjugate point]' if near else ''}; margin {m16:+.3g}, brute smallest {lam0:+.3g}{lc_text}"
+              f"{' [next to a conjugate point]' if near else ''}; margin {m16:+.3g} (64 pieces {row['margin_64']:+.3g}), "
+              f"brute smallest {lam0:+.3g}{lc_text}"
               f"  ({times[-1]:.2f} s)")
     ok = [r for r in rows if r["brute_index"] is not None]
     defined = [r for r in ok if r["index"] >= 0]
@@ -275,11 +278,12 @@ def bench_atlas(size, samples, repeats):
     clear = [r for r in ok if not r["near_conjugate_point"]]
     same_clear = sum(r["index_64"] == r["brute_index"] for r in clear)
     signs = sum(np.sign(r["margin"]) == np.sign(r["brute_smallest"]) for r in defined)
+    signs64 = sum(np.sign(r["margin_64"]) == np.sign(r["brute_smallest"]) for r in ok)
     crits = [abs(r["critical_rel_diff"]) for r in rows if r.get("critical_rel_diff") is not None]
     t_index = float(np.mean(times))
     out.update(samples=rows, brute_failed=len(rows) - len(ok), index_agree_16=[same16, len(defined)],
                index_agree_64=[same64, len(ok)], index_agree_64_clear=[same_clear, len(clear)],
-               margin_sign_agree=[int(signs), len(defined)],
+               margin_sign_agree=[int(signs), len(defined)], margin_sign_agree_64=[int(signs64), len(ok)],
                critical_rel_diff_max=max(crits) if crits else None, brute_index_s=t_index,
                brute_critical_s=float(np.mean(crit_times)) if crit_times else None,
                brute_grid_index_s=t_index * n_valid,
@@ -287,7 +291,8 @@ def bench_atlas(size, samples, repeats):
                brute_grid_critical_s=t_index * n_valid * (64 + 24))
     print(f"  index: atlas (16 pieces, where defined) = brute force at {same16}/{len(defined)} samples; 64-piece atlas = "
           f"brute force at {same64}/{len(ok)} ({same_clear}/{len(clear)} away from a conjugate point); "
-          f"sign of the margin at {signs}/{len(defined)}; brute force failed at {len(rows) - len(ok)}")
+          f"sign of the margin at {signs}/{len(defined)} (64 pieces: {signs64}/{len(ok)}); "
+          f"brute force failed at {len(rows) - len(ok)}")
     if crits:
         print(f"  critical length: largest |relative difference| {max(crits):.1e} over {len(crits)} samples "
               f"(brute force n_seg = {N_SEG}, O(h^2))")

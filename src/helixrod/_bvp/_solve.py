@@ -472,11 +472,3 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
         if acceptable(sol):
             break
     return sol
-    for steps in FALLBACK_CONTINUATION:
-        homotopy = dataclasses.replace(options, continuation=steps)
-        trial = resolved(solve(rod, length, start, end, None, saveat, homotopy, guess_kind), homotopy)
-        if acceptable(trial) or (bool(trial.ok) and not bool(sol.ok)):
-            sol = trial
-        if acceptable(sol):
-            break
-    return sol

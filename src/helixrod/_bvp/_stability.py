@@ -53,7 +53,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Float
 
 from .._kirchhoff import fixed_step_flow, linearised_rate
 from .._lie import hat, vee
@@ -96,7 +96,7 @@ def piece_transfer(frame_a, N, M_a, flow, jacobian, compliance) -> Float[Array, 
     """The transfer matrix $T$ of one piece (module docstring) in lab components: variations
     (dx, dtheta, dN, dM) at its start to those at its end.  `flow` `(18,)` and `jacobian`
     `(6, 18)`: the piece's flow from its start frame and its derivatives along the six local
-    start wrenches (`piece_flow`, `flow_jacobian`).  `compliance`: the tiny extensibility
+    start wrenches (`_flow_and_jacobian`).  `compliance`: the tiny extensibility
     (`EXTENSIBILITY` of the piece's bending compliance $h^3/\\bar K$) that keeps $B$
     invertible where a piece is straight: there an inextensible piece's end cannot move
     along its axis to first order, whatever the axial force."""

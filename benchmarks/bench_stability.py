@@ -8,7 +8,7 @@ independent brute-force discrete second variation.
    (Rod(1, 1, 0.8), L = 1, Loaded((5, 0, 0))), an Euler column below its critical load
    (Loaded((0, 0, -2)), P_c = pi^2/4) and a helical spring between clamps (Rod(1, 1, 0.77,
    uhat=(0, 1, 0.3)), L = 30, `axial_ends` stretched to 1.05 h0 at its unloaded rotation).
-   The target is a ratio of at most 2.  The three problems share one compiled program per
+   The target is a ratio of at most 2 (wall time; CPU time, all threads, also shown).  The three problems share one compiled program per
    variant (every end is one uniform `EndCondition`); the caches are cleared before each first
    call, so that each first call includes its compilation.
 2. Critical loads: the root of `stability_margin` (scipy brentq over solves from
@@ -35,7 +35,12 @@ jaxlib 0.10.2 deadlocks on 2 CPU cores in batched LAPACK calls (getrf through XL
 under the concurrency-optimised thunk scheduler (`_misc.solve_small`; bench_tweezer.py): the
 atlas's batched matrix exponentials, inverses and determinants hung a 10 x 10 grid in every
 try.  This script turns that scheduler off (`XLA_FLAGS`, before JAX starts) and arms a
-watchdog that fails a hung run.
+watchdog that fails a hung run.  It also sets OPENBLAS_NUM_THREADS=1 (unless set): jaxlib's
+LAPACK kernels (scipy's OpenBLAS) already fan a batch over XLA's pool, and OpenBLAS's own
+threads, which spin while they wait, doubled the atlas's CPU time at the same wall time on
+a quiet machine, and are the likely cause of a ~13x slower atlas (448 s instead of 34 s for
+the 100 x 100 indices) measured with them while other jobs shared the cores.  Part 1 reports CPU time besides wall time for the same
+reason: on a loaded machine the wall time of the test's solve swung between 7 and 96 ms.
 
     python benchmarks/bench_stability.py [--quick]     # --quick: 20 x 20 atlas, 5 samples
 """
@@ -45,6 +50,7 @@ from __future__ import annotations
 import os
 
 os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_enable_concurrency_optimized_scheduler=false").strip()
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
 import faulthandler  # noqa: E402

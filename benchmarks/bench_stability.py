@@ -70,7 +70,7 @@ import scipy.linalg  # noqa: E402
 import scipy.optimize  # noqa: E402
 
 import helixrod as hr  # noqa: E402
-from _timing import best_time  # noqa: E402
+from _timing import best_cpu_time, best_time  # noqa: E402
 
 HERE = pathlib.Path(__file__).parent
 RESULTS = HERE / "results"
@@ -80,17 +80,6 @@ from discrete_rod import equilibrium, expm_so3, hat, hessian_eigenvalues  # noqa
 ATLAS_ROD = hr.Rod(1.0, 1.5, 0.8, uhat=(0.0, 1.0, 0.3))
 ATLAS_LENGTH = 5.0
 N_SEG = 30
-
-
-def best_cpu_time(fn, repeats: int) -> float:
-    """Best of `repeats` process CPU times (all threads) of `fn()`: less sensitive than the
-    wall time to other jobs on the cores, which stall a program that waits for its pool."""
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.process_time()
-        jax.block_until_ready(fn())
-        best = min(best, time.process_time() - start)
-    return best
 
 
 # -- 1. the cost of the test ------------------------------------------------------------------

@@ -31,16 +31,16 @@ independent brute-force discrete second variation.
 
 Run on 2 CPU cores shared with other jobs: timings are noisy and pessimistic.
 
-jaxlib 0.10.2 deadlocks on 2 CPU cores in batched LAPACK calls (getrf through XLA's FFI)
-under the concurrency-optimised thunk scheduler (`_misc.solve_small`; bench_tweezer.py): the
-atlas's batched matrix exponentials, inverses and determinants hung a 10 x 10 grid in every
-try.  This script turns that scheduler off (`XLA_FLAGS`, before JAX starts) and arms a
-watchdog that fails a hung run.  It also sets OPENBLAS_NUM_THREADS=1 (unless set): jaxlib's
-LAPACK kernels (scipy's OpenBLAS) already fan a batch over XLA's pool, and OpenBLAS's own
-threads, which spin while they wait, doubled the atlas's CPU time at the same wall time on
-a quiet machine, and are the likely cause of a ~13x slower atlas (448 s instead of 34 s for
-the 100 x 100 indices) measured with them while other jobs shared the cores.  Part 1 reports CPU time besides wall time for the same
-reason: on a loaded machine the wall time of the test's solve swung between 7 and 96 ms.
+jaxlib 0.10.2 deadlocked XLA's CPU thread pool on 2 cores (concurrency-optimised thunk
+scheduler) when the atlas's batched LAPACK calls shared one program with other loops: a
+10 x 10 grid hung in every try.  The atlas now uses no LAPACK call but one eigh per helix
+(`_misc.inverse_small`, `determinant_small`) and computes its critical lengths in a program
+of their own; this script runs with XLA's default flags (a watchdog still fails a hung run).
+It sets OPENBLAS_NUM_THREADS=1 (unless set): jaxlib's LAPACK kernels (scipy's OpenBLAS)
+already fan a batch over XLA's pool, and OpenBLAS's own threads, which spin while they wait,
+doubled the atlas's CPU time at the same wall time on a quiet machine.  Part 1 reports CPU
+time besides wall time: on a loaded machine the wall time of the test's solve swung between
+7 and 96 ms.
 
     python benchmarks/bench_stability.py [--quick]     # --quick: 20 x 20 atlas, 5 samples
 """
@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import os
 
-os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_enable_concurrency_optimized_scheduler=false").strip()
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
@@ -346,7 +345,7 @@ def main():
     print(f"  {'brute force / atlas, with critical lengths':46s} {a['brute_grid_critical_s'] / a['with critical length']['wall_s']:8.0f}")
     RESULTS.mkdir(exist_ok=True)
     payload = dict(device=str(jax.devices()[0]), quick=args.quick, results=results, total_s=time.perf_counter() - start,
-                   xla_flags=os.environ["XLA_FLAGS"],
+                   xla_flags=os.environ.get("XLA_FLAGS", ""),
                    note="2 CPU cores shared with other jobs while measured: timings are noisy and pessimistic")
     path = RESULTS / "bench_stability.json"
     path.write_text(json.dumps(payload, indent=1))

@@ -118,3 +118,27 @@ def test_solve_small_matches_lapack_and_pivots(rng):
     np.testing.assert_allclose(jax.jacfwd(solve_small, argnums=1)(batch[0], rhs[0]), np.linalg.inv(batch[0]), rtol=1e-12)
     np.testing.assert_allclose(jax.jacrev(solve_small, argnums=1)(batch[0], rhs[0]), np.linalg.inv(batch[0]), rtol=1e-12)
     assert not np.all(np.isfinite(np.asarray(solve_small(jnp.zeros((2, 2)), jnp.ones(2)))))
+
+
+def test_small_inverse_determinant_and_matrix_right_hand_sides_match_lapack(rng):
+    for n in (1, 3, 6, 12):
+        A = rng.normal(size=(n, n))
+        B = rng.normal(size=(n, 4))
+        np.testing.assert_allclose(_misc.solve_small(A, B), np.linalg.solve(A, B), rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(_misc.inverse_small(A), np.linalg.inv(A), rtol=1e-10, atol=1e-12)
+        assert float(_misc.determinant_small(A)) == pytest.approx(np.linalg.det(A), rel=1e-12)
+    # The sign of the determinant follows the row exchanges.
+    swap = np.array([[0.0, 1.0], [1.0, 0.0]])
+    assert float(_misc.determinant_small(swap)) == -1.0
+    assert float(_misc.determinant_small(np.diag([2.0, -3.0, 0.5]))) == pytest.approx(-3.0, rel=1e-15)
+
+
+def test_symmetric_eigenvalue_min_matches_eigvalsh(rng):
+    for _ in range(20):
+        S = rng.normal(size=(3, 3))
+        S = S + S.T
+        assert float(_misc.symmetric_eigenvalue_min(S)) == pytest.approx(np.linalg.eigvalsh(S)[0], rel=1e-12, abs=1e-12)
+    assert float(_misc.symmetric_eigenvalue_min(2.0 * np.eye(3))) == 2.0  # all three equal
+    assert float(_misc.symmetric_eigenvalue_min(np.diag([1.0, 2.0, 2.0]))) == pytest.approx(1.0, rel=1e-14)
+    # A double smallest eigenvalue: the documented ~1e-8 of the arccos near its end.
+    assert float(_misc.symmetric_eigenvalue_min(np.diag([1.0, 1.0, 2.0]))) == pytest.approx(1.0, rel=1e-7)

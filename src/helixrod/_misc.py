@@ -102,31 +102,72 @@ def increasing_within(s: ArrayLike, length: ArrayLike, name: str, owner: str, sl
     return s
 
 
+def _eliminate(A: Array, b: Array) -> tuple[Array, Array]:
+    """Gaussian elimination with partial pivoting of `[A | b]` (`A` `(n, n)`, `b` `(n, k)`),
+    unrolled in jnp operations: the reduced (upper-triangular) augmented matrix and the
+    parity (+1/-1) of its row permutation."""
+    n = A.shape[-1]
+    M = jnp.concatenate([A, b], axis=1)
+    rows = jnp.arange(n)
+    parity = jnp.ones((), A.dtype)
+    for k in range(n):
+        pivot = k + jnp.argmax(jnp.abs(M[k:, k]))
+        order = jnp.where(rows == k, pivot, jnp.where(rows == pivot, k, rows))
+        parity = jnp.where(pivot == k, parity, -parity)
+        M = M[order]
+        factors = jnp.where(rows > k, M[:, k] / M[k, k], 0.0)
+        M = M - factors[:, None] * M[k][None, :]
+    return M, parity
+
+
 def solve_small(A: ArrayLike, b: ArrayLike) -> Array:
-    """$A^{-1} b$ for one small square system (n <= ~8; batch with `vmap`) by Gaussian
-    elimination with partial pivoting, unrolled in jnp operations.
+    """$A^{-1} b$ for one small square system (n <= ~12; `b` `(n,)` or `(n, k)`; batch with
+    `vmap`) by Gaussian elimination with partial pivoting, unrolled in jnp operations.
 
     Used for the many tiny per-point systems inside vmapped models instead of
     `jnp.linalg.solve`, whose LAPACK calls (getrf/trsm through XLA's FFI) deadlocked in
     jaxlib 0.10.2 on 2 CPU cores when a batch of them ran under the concurrency-optimised
-    scheduler (seen in a 2000-point tweezer fit); pure arithmetic also fuses with its
-    neighbours.  Differentiable in both modes; a singular matrix gives inf/NaN as
-    `jnp.linalg.solve` would."""
+    scheduler (seen in a 2000-point tweezer fit and in a 100 x 100 stability atlas); pure
+    arithmetic also fuses with its neighbours.  Differentiable in both modes; a singular
+    matrix gives inf/NaN as `jnp.linalg.solve` would."""
     A = jnp.asarray(A)
     b = jnp.asarray(b)
     n = A.shape[-1]
-    M = jnp.concatenate([A, b[:, None]], axis=1)
-    rows = jnp.arange(n)
-    for k in range(n):
-        pivot = k + jnp.argmax(jnp.abs(M[k:, k]))
-        order = jnp.where(rows == k, pivot, jnp.where(rows == pivot, k, rows))
-        M = M[order]
-        factors = jnp.where(rows > k, M[:, k] / M[k, k], 0.0)
-        M = M - factors[:, None] * M[k][None, :]
-    x = jnp.zeros(n, M.dtype)
+    M, _ = _eliminate(A, b.reshape(n, -1))
+    x = jnp.zeros((n, M.shape[1] - n), M.dtype)
     for k in reversed(range(n)):
-        x = x.at[k].set((M[k, n] - jnp.dot(M[k, :n], x)) / M[k, k])
-    return x
+        x = x.at[k].set((M[k, n:] - M[k, :n] @ x) / M[k, k])
+    return x.reshape(b.shape)
+
+
+def inverse_small(A: ArrayLike) -> Array:
+    """$A^{-1}$ of one small square matrix, as `solve_small` (no LAPACK call)."""
+    A = jnp.asarray(A)
+    return solve_small(A, jnp.eye(A.shape[-1], dtype=A.dtype))
+
+
+def determinant_small(A: ArrayLike) -> Array:
+    """$\\det A$ of one small square matrix by the elimination of `solve_small` (no LAPACK
+    call)."""
+    A = jnp.asarray(A)
+    M, parity = _eliminate(A, jnp.zeros((A.shape[-1], 0), A.dtype))
+    return parity * jnp.prod(jnp.diagonal(M))
+
+
+def symmetric_eigenvalue_min(A: ArrayLike) -> Array:
+    """The smallest eigenvalue of one symmetric 3 x 3 matrix in closed form (the
+    trigonometric solution of the characteristic cubic; Smith 1961, *Commun. ACM* 4, 168):
+    no LAPACK call.  Round-off ~1e-8 relative where the smallest eigenvalue is double (the
+    arccos near its end); a scale, not a spectrum."""
+    A = jnp.asarray(A)
+    q = jnp.trace(A) / 3.0
+    off = A[0, 1] ** 2 + A[0, 2] ** 2 + A[1, 2] ** 2
+    p = jnp.sqrt((jnp.sum((jnp.diagonal(A) - q) ** 2) + 2.0 * off) / 6.0)
+    safe_p = jnp.where(p > 0, p, 1.0)
+    S = (A - q * jnp.eye(3, dtype=A.dtype)) / safe_p
+    r = jnp.clip(jnp.dot(S[0], jnp.cross(S[1], S[2])) / 2.0, -1.0, 1.0)
+    phi = jnp.arccos(r) / 3.0
+    return jnp.where(p > 0, q + 2.0 * p * jnp.cos(phi + 2.0 * jnp.pi / 3.0), q)
 
 
 def write_atomically(path, write, *, binary: bool = True) -> None:

@@ -36,7 +36,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._equilibria import helix_equilibria
-from .._misc import check_integer, finite_scalar, float_dtype
+from .._misc import check_integer, determinant_small, finite_scalar, float_dtype
 from .._lie import hat, so3_exp
 from .._rod import check_one_rod
 from ._ends import CLAMPED, end_condition
@@ -134,11 +134,12 @@ def _expm(A):
     return jnp.where(jnp.sum(jnp.abs(A), axis=0).max() <= EXPM_RANGE, E, jnp.nan)
 
 
-def _to_lab(n, m):
+def _to_lab(n, m, sign=1.0):
     """Body variations (eta, xi, dn, dm) to the test's (dx, dtheta, dN, dM) at the identity
-    frame (module docstring)."""
+    frame (module docstring); `sign=-1` the inverse (I + L with L^2 = 0: its inverse is I - L)."""
     zero, eye = jnp.zeros((3, 3), n.dtype), jnp.eye(3, dtype=n.dtype)
-    return jnp.block([[eye, zero, zero, zero], [zero, eye, zero, zero], [zero, -hat(n), eye, zero], [zero, -hat(m), zero, eye]])
+    n_, m_ = -sign * hat(n), -sign * hat(m)
+    return jnp.block([[eye, zero, zero, zero], [zero, eye, zero, zero], [zero, n_, eye, zero], [zero, m_, zero, eye]])
 
 
 def _with_extensibility(rod, T, s):
@@ -149,8 +150,7 @@ def _with_extensibility(rod, T, s):
 def _body_transfer(rod, n, m, s):
     """Transfer matrix of a piece of length `s` in body coordinates at its two ends (lab
     ones for a start at the identity frame, up to the end's rotation)."""
-    to_lab = _to_lab(n, m)
-    T = to_lab @ _expm(_body_variation_matrix(rod, n, m) * s) @ jnp.linalg.inv(to_lab)
+    T = _to_lab(n, m) @ _expm(_body_variation_matrix(rod, n, m) * s) @ _to_lab(n, m, -1.0)
     return _with_extensibility(rod, T, s)
 
 
@@ -164,15 +164,15 @@ def _critical_length(rod, n, m, max_length, bisections: int):
     entries grow like $e^{\\lambda s}$ and its sign loses precision at long lengths (measured:
     lengths near 19 of a `max_length` of 20 moved by 1-5 % between two ways of evaluating
     it, those below 12 not at all) -- the index at `length` is the robust answer."""
-    sign = lambda s: jnp.sign(jnp.linalg.det(_body_transfer(rod, n, m, s)[:6, 6:]))  # noqa: E731
+    sign = lambda s: jnp.sign(determinant_small(_body_transfer(rod, n, m, s)[:6, 6:]))  # noqa: E731
     lengths = max_length * jnp.arange(1, CRITICAL_SAMPLES + 1) / CRITICAL_SAMPLES
     # The samples by powers of one step's exponential (the flow is a one-parameter group).
     to_lab, step = _to_lab(n, m), _expm(_body_variation_matrix(rod, n, m) * lengths[0])
-    to_body = jnp.linalg.inv(to_lab)
+    to_body = _to_lab(n, m, -1.0)
 
     def sample(E, s):
         E = E @ step
-        return E, jnp.sign(jnp.linalg.det(_with_extensibility(rod, to_lab @ E @ to_body, s)[:6, 6:]))
+        return E, jnp.sign(determinant_small(_with_extensibility(rod, to_lab @ E @ to_body, s)[:6, 6:]))
 
     _, signs = jax.lax.scan(sample, jnp.eye(12, dtype=n.dtype), lengths)
     first_sign = sign(max_length * 1e-3 / CRITICAL_SAMPLES)
@@ -201,25 +201,25 @@ def _clamped_helix_stability(rod, n, m, length, pieces: int):
 
 
 @eqx.filter_jit
-def _atlas(rod, kappa, tau, length, max_length, pieces: int, bisections: int, chunk_size: int):
+def _atlas(rod, kappa, tau, length, pieces: int, chunk_size: int):
     eq = helix_equilibria(rod, kappa, tau)
     shape = eq.valid.shape
     n = jnp.where(eq.valid[..., None], eq.n, 0.0).reshape(-1, 3)
     m = jnp.where(eq.valid[..., None], eq.m, 0.0).reshape(-1, 3)
-
-    def one(wrench):
-        n, m = wrench
-        index, margin = _clamped_helix_stability(rod, n, m, length, pieces)
-        if bisections == 0:
-            return index, margin, jnp.full((), jnp.nan, n.dtype)
-        return index, margin, _critical_length(rod, n, m, max_length, bisections)
-
-    index, margin, critical = jax.lax.map(one, (n, m), batch_size=chunk_size)
+    index, margin = jax.lax.map(lambda w: _clamped_helix_stability(rod, *w, length, pieces), (n, m), batch_size=chunk_size)
     valid = eq.valid.reshape(-1)
     index = jnp.where(valid, index, -1).reshape(shape)
     margin = jnp.where(valid, margin, jnp.nan).reshape(shape)
-    critical = jnp.where(valid, critical, jnp.nan).reshape(shape)
-    return eq.valid, eq.stable, index, margin, critical
+    return eq.valid, eq.stable, index, margin, n, m
+
+
+@eqx.filter_jit
+def _critical_lengths(rod, n, m, valid, max_length, bisections: int, chunk_size: int):
+    # A program of its own: compiled into `_atlas`, beside the batched eigh of the index, it
+    # deadlocked XLA's CPU thread pool (jaxlib 0.10.2, 2 cores, concurrency-optimised
+    # scheduler) on a 10 x 10 grid; apart, neither does.
+    critical = jax.lax.map(lambda w: _critical_length(rod, *w, max_length, bisections), (n, m), batch_size=chunk_size)
+    return jnp.where(valid, critical.reshape(valid.shape), jnp.nan)
 
 
 def stability_atlas(
@@ -269,12 +269,14 @@ def stability_atlas(
         raise ValueError(f"{owner}: kappa {kappa.shape} and tau {tau.shape} do not broadcast") from None
     length = finite_scalar(length, "length", owner, positive=True)
     max_length = 4 * length if max_length is None else finite_scalar(max_length, "max_length", owner, positive=True)
-    bisections = check_integer(bisections, "bisections", owner) if critical_length else 0
+    bisections = check_integer(bisections, "bisections", owner)
     pieces = check_integer(pieces, "pieces", owner)
     chunk_size = check_integer(chunk_size, "chunk_size", owner)
-    valid, pointwise, index, margin, critical = _atlas(
-        rod, kappa, tau, jnp.asarray(length, dtype), jnp.asarray(max_length, dtype), pieces, bisections, chunk_size
-    )
+    valid, pointwise, index, margin, n, m = _atlas(rod, kappa, tau, jnp.asarray(length, dtype), pieces, chunk_size)
+    if critical_length:
+        critical = _critical_lengths(rod, n, m, valid, jnp.asarray(max_length, dtype), bisections, chunk_size)
+    else:
+        critical = jnp.full(valid.shape, jnp.nan, dtype)
     return StabilityAtlas(
         kappa=kappa, tau=tau, length=jnp.asarray(length, dtype), max_length=jnp.asarray(max_length, dtype),
         valid=valid, pointwise_stable=pointwise, instability_index=index, stability_margin=margin,

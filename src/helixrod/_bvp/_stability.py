@@ -57,7 +57,7 @@ from jaxtyping import Array, Float
 
 from .._kirchhoff import fixed_step_flow, linearised_rate
 from .._lie import hat, vee
-from .._misc import no_gradient
+from .._misc import inverse_small, no_gradient, solve_small, symmetric_eigenvalue_min
 from ._ends import LOADED, TWEEZER, EndCondition
 from ._options import BoundaryValueOptions
 from ._shooting import per_piece
@@ -89,7 +89,7 @@ def stiffness_range(rod) -> tuple[Array, Array]:
     uhat = jax.lax.stop_gradient(jnp.asarray(rod.uhat))
     hessian = jax.jacfwd(no_gradient(rod).moment)(uhat)
     hessian = 0.5 * (hessian + hessian.T)
-    return jnp.linalg.eigvalsh(hessian)[0], jnp.trace(hessian) / 3.0
+    return symmetric_eigenvalue_min(hessian), jnp.trace(hessian) / 3.0
 
 
 def piece_transfer(frame_a, N, M_a, flow, jacobian, compliance) -> Float[Array, "12 12"]:
@@ -121,7 +121,7 @@ def piece_transfer(frame_a, N, M_a, flow, jacobian, compliance) -> Float[Array, 
 def piece_hessian(T) -> Float[Array, "12 12"]:
     """The Hessian of a piece's energy in its (start, end) node variations, from $T$."""
     A, B, C, D = T[:6, :6], T[:6, 6:], T[6:, :6], T[6:, 6:]
-    B_inv = jnp.linalg.inv(B)
+    B_inv = inverse_small(B)
     return jnp.block([[B_inv @ A, -B_inv], [C - D @ B_inv @ A, D @ B_inv]])
 
 
@@ -222,7 +222,7 @@ def assess(rod, length, end: EndCondition, N, transfers, end_position, largest_m
     mode = jnp.where(free, vectors[:, 0], 0.0).reshape(p, 6) * jnp.concatenate([jnp.full(3, length), jnp.ones(3)])[None, :]
     size = jnp.maximum(jnp.max(jnp.abs(mode[:, 3:])), jnp.max(jnp.abs(mode[:, :3])) / length)
     mode = UNSTABLE_STEP * mode / jnp.where(size > 0, size, 1.0)
-    push = jnp.linalg.solve(transfers[0, :6, 6:], mode[0])
+    push = solve_small(transfers[0, :6, 6:], mode[0])
     index = jnp.sum(eigenvalues < -NEUTRAL).astype(jnp.int32)
     k_min = stiffness_range(rod)[0]
     resolved = h * (jnp.sqrt(jnp.linalg.norm(N) / k_min) + largest_moment / k_min) <= PIECE_RESOLUTION

@@ -12,7 +12,11 @@ Closed forms (straight rod, bending stiffness B, length L, clamped at s = 0):
   $w = y + iz$ obeys $Bw'''' - iMw''' = 0$; with $w = w' = 0$ at both ends the determinant
   vanishes when $e^{i\\theta}(1 - i\\theta/2) = 1 + i\\theta/2$, $\\theta = ML/B$, i.e.
   $\\tan(\\theta/2) = \\theta/2$: $\\theta = 8.98682$; the mode and its rotation by 90° about the
-  axis make it a double one (the index jumps by 2).
+  axis make it a double one (the index jumps by 2);
+- both ends clamped, brought together along their common axis to a chord $h < L$: the first
+  buckled mode is the planar inflexional elastica, a full period of the pendulum
+  $B\theta'' = -P\sin\theta$ (Love, sec. 263): with $m = \sin^2(\alpha/2)$ of its largest
+  angle $\alpha$, $L\sqrt{P/B} = 4K(m)$ and $h/L = 2E(m)/K(m) - 1$.
 """
 
 import mpmath
@@ -20,6 +24,7 @@ import numpy as np
 import pytest
 import scipy.integrate
 import scipy.optimize
+import scipy.special
 
 import helixrod
 from discrete_rod import centreline, equilibrium, hessian_eigenvalues
@@ -191,3 +196,39 @@ def test_undefined_stability_is_flagged():
     assert not bool(sol.stable)
     off = helixrod.solve_boundary_value(rod, L, end=helixrod.Loaded(force=(0.1, 0.0, 0.0)), stability_pieces=0)
     assert bool(off.ok) and int(off.instability_index) == -1
+
+
+def clamped_elastica(h):
+    """(compressive force P, clamp moment) of the first buckled mode between parallel
+    clamps at chord `h` (module docstring), B = 1: the clamp moment is
+    $B\theta'(0) = 2\sqrt{m P B}$ (the pendulum's energy at $\theta = 0$)."""
+    m = scipy.optimize.brentq(lambda m: 2 * scipy.special.ellipe(m) / scipy.special.ellipk(m) - 1 - h / L, 0, 1 - 1e-15)
+    P = (4 * scipy.special.ellipk(m) / L) ** 2
+    return P, 2 * np.sqrt(m * P)
+
+
+def test_clamped_ends_brought_together_buckle_by_default_and_turn():
+    """Every built-in guess keeps the rod straight, which cannot shorten; the default now
+    buckles it into its first mode (in its softer plane), exact against the elliptic
+    integrals; a rotation curve at that end-shortening runs from it with `guess=`."""
+    rod = helixrod.Rod(1.0, 1.3, 0.8)
+    sol = helixrod.solve_boundary_value(rod, L, end=helixrod.Clamped((0.0, 0.0, 0.8)), saveat=np.linspace(0, L, 41))
+    assert bool(sol.stable)
+    assert -float(sol.force[2]) == pytest.approx(clamped_elastica(0.8)[0], rel=1e-8)
+    assert np.max(np.abs(np.asarray(sol.x)[:, 1])) > 0.1 and np.max(np.abs(np.asarray(sol.x)[:, 0])) < 1e-8
+    curve = helixrod.rotation_response(rod, L, np.linspace(0.0, 1.0, 5), extension=0.8, guess=sol)
+    assert np.all(np.asarray(curve.ok)) and np.all(np.asarray(curve.stable))
+    assert float(curve.moment[0]) == pytest.approx(0.0, abs=1e-8) and np.all(np.diff(np.asarray(curve.moment)) > 0)
+
+
+def test_unstable_planar_elastica_is_left_for_a_stable_state():
+    """An isotropic rod (twist softer than bending) brought to 0.4 L between clamps: the planar
+    first mode is an equilibrium with an unstable direction (and a neutral one: it can turn
+    about its chord while twisting back); the default solve leaves it for a stable state."""
+    rod = helixrod.Rod(1.0, 1.0, 0.8)
+    end = helixrod.Clamped((0.0, 0.0, 0.4))
+    P, moment = clamped_elastica(0.4)
+    planar = helixrod.solve_boundary_value(rod, L, end=end, guess=((0.0, 0.0, -P), (moment, 0.0, 0.0)), throw=False)
+    assert bool(planar.ok) and int(planar.instability_index) >= 1
+    found = helixrod.solve_boundary_value(rod, L, end=end)
+    assert bool(found.stable) and abs(-float(found.force[2]) - P) > 1e-3 * P

@@ -40,7 +40,7 @@ from ._bulk import BulkHelix, bulk_helix_at
 from ._ends import AXIAL_CONTROLS, AXIAL_OBSERVABLES, CONTROL_INDEX, LOADED, Clamped, axial_controls, axial_end_condition
 from ._options import BoundaryValueOptions, with_settings
 from ._shooting import default_warm_start
-from ._solve import BoundaryValueSolution, solve
+from ._solve import BoundaryValueSolution, fit_guess, parse_guess, solve
 
 MODES = ("continuation", "independent")
 
@@ -153,10 +153,12 @@ def _no_bulk(dtype) -> BulkHelix:
 
 
 @eqx.filter_jit
-def _curve(rod, length, kind, values, options: BoundaryValueOptions, mode: str, hints=None, with_bulk: bool = True):
+def _curve(rod, length, kind, values, options: BoundaryValueOptions, mode: str, hints=None, with_bulk: bool = True, guess=None):
     """Solve every point of a curve; `values` `(n, 4)` = (F, M, h, Theta) per point.
     `hints` `(n,)`: rotations near which to count whole turns (independent mode; default
-    the bulk prediction's); `with_bulk=False` (independent mode): no bulk prediction."""
+    the bulk prediction's); `with_bulk=False` (independent mode): no bulk prediction.
+    `guess` (as `solve`): the start of every point (independent mode) or of the first
+    (continuation; the default guess where that solve fails)."""
     start = Clamped(*unloaded_state(no_gradient(rod), 0.0))
     start = jax.tree.map(jnp.asarray, start)
     index = jnp.asarray(CONTROL_INDEX)[kind]
@@ -172,7 +174,7 @@ def _curve(rod, length, kind, values, options: BoundaryValueOptions, mode: str, 
 
         def one(v, hint):
             end = axial_end_condition(rod, length, kind, v)
-            sol = solve(rod, length, start, end, None, None, options)
+            sol = solve(rod, length, start, end, guess, None, options)
             bulk = bulk_helix_at(rod, length, index, v, unloaded) if with_bulk else _no_bulk(values.dtype)
             if hint is None:
                 hint = jnp.where(bulk.ok, bulk.rotation, theta0)
@@ -183,6 +185,9 @@ def _curve(rod, length, kind, values, options: BoundaryValueOptions, mode: str, 
     else:
         first_end = axial_end_condition(rod, length, kind, values[0])
         guess0 = no_gradient(default_warm_start(rod, length, start, first_end, options.segments, "helix"))
+        if guess is not None:
+            first = no_gradient(solve(rod, length, start, first_end, guess, None, options))
+            guess0 = jax.tree.map(lambda a, b: jnp.where(first.ok, a, b), first.warm_start(), guess0)
         bulk0 = bulk_helix_at(rod, length, index, values[0], unloaded)
         hint0 = jnp.where(bulk0.ok, bulk0.rotation, theta0)
 
@@ -236,6 +241,7 @@ def axial_response(
     mode: str = "continuation",
     rotation_hint: ArrayLike | None = None,
     bulk: bool = True,
+    guess: BoundaryValueSolution | tuple[ArrayLike, ArrayLike] | None = None,
     options: BoundaryValueOptions | None = None,
     segments: int | None = None,
     method: str | None = None,
@@ -254,7 +260,10 @@ def axial_response(
     or `"independent"` (vmapped solves from the bulk guess).  `rotation_hint` `(n,)`
     (independent mode): count the whole turns of a responding rotation nearest these
     values (e.g. measured ones) instead of the bulk prediction's; `bulk=False` skips the
-    bulk prediction (its fields NaN).  `options` and the keywords after it: as
+    bulk prediction (its fields NaN).  `guess`: where to start -- a `BoundaryValueSolution` (e.g. a buckled state found by
+    `solve_boundary_value` or `follow_branch`) or a pair `(n0, m0)` of start wrenches
+    (director frame): the first point's start in continuation mode (the default guess
+    where that fails), every point's in independent mode.  `options` and the keywords after it: as
     `solve_boundary_value`.  `throw`: raise `SolverError` if any point fails (default
     `False`: failed points have `ok = False` and NaN observables).  jit/vmap safe.
     """
@@ -265,7 +274,7 @@ def axial_response(
         raise ValueError(f"{owner}: {error}") from None
     values, swept = _point_values(name, given, owner)
     return _response(
-        rod, length, name, values, swept, mode=mode, rotation_hint=rotation_hint, bulk=bulk, owner=owner,
+        rod, length, name, values, swept, mode=mode, rotation_hint=rotation_hint, bulk=bulk, owner=owner, guess=guess,
         throw=throw, options=with_settings(
             options, segments=segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
             ode_atol=ode_atol, adjoint=adjoint,
@@ -273,10 +282,14 @@ def axial_response(
     )
 
 
-def _response(rod, length, name, values, swept, *, mode, options, owner, throw, rotation_hint=None, bulk=True):
+def _response(rod, length, name, values, swept, *, mode, options, owner, throw, rotation_hint=None, bulk=True, guess=None):
     check_choice(mode, MODES, "mode", owner)
     check_one_rod(rod, owner)
     length = finite_scalar(length, "length", owner, positive=True)
+    guess, guess_kind = parse_guess(guess, owner)
+    if guess_kind != "helix":
+        raise ValueError(f"{owner}: guess must be None, a BoundaryValueSolution or (n0, m0)")
+    guess = fit_guess(guess, options.segments, Clamped(*unloaded_state(rod, 0.0)))
     hints = None
     if rotation_hint is not None or not bulk:
         if mode != "independent":
@@ -285,7 +298,7 @@ def _response(rod, length, name, values, swept, *, mode, options, owner, throw, 
         hint = values[:, 3] if rotation_hint is None else jnp.asarray(rotation_hint, values.dtype)
         hints = jnp.broadcast_to(hint, values.shape[:1])
     kind = jnp.asarray(AXIAL_CONTROLS[name].kind, jnp.int32)
-    obs, bulk_obs, sols, bulk_ok = _curve(rod, length, kind, values, options, mode, hints, bool(bulk))
+    obs, bulk_obs, sols, bulk_ok = _curve(rod, length, kind, values, options, mode, hints, bool(bulk), guess)
     curve = ResponseCurve(
         controls=name,
         swept=swept,
@@ -362,6 +375,7 @@ def force_extension(
     moment: ArrayLike | None = None,
     rotation: ArrayLike | None = None,
     mode: str = "continuation",
+    guess: BoundaryValueSolution | tuple[ArrayLike, ArrayLike] | None = None,
     options: BoundaryValueOptions | None = None,
     segments: int | None = None,
     method: str | None = None,
@@ -381,8 +395,8 @@ def force_extension(
 
     `mode`: `"continuation"` (default; in order, each solve warm-started from the
     previous -- sort `forces` from small to large) or `"independent"` (vmapped solves from
-    the bulk guess).  `options` and the keywords after it: as `solve_boundary_value`;
-    `throw` as `axial_response`.  jit/vmap safe (e.g. `jax.vmap` over lengths); unconverged
+    the bulk guess).  `guess` as `axial_response`.  `options` and the keywords after it: as
+    `solve_boundary_value`; `throw` as `axial_response`.  jit/vmap safe (e.g. `jax.vmap` over lengths); unconverged
     points have `ok = False` and NaN observables.
 
     **Example**
@@ -404,7 +418,7 @@ def force_extension(
     name, given = axial_controls(force=forces, **held)
     values, _ = _point_values(name, given, owner)
     return _response(
-        rod, length, name, values, "force", mode=mode, owner=owner, throw=throw, options=with_settings(
+        rod, length, name, values, "force", mode=mode, owner=owner, throw=throw, guess=guess, options=with_settings(
             options, segments=segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
             ode_atol=ode_atol, adjoint=adjoint,
         ),
@@ -419,6 +433,7 @@ def rotation_response(
     force: ArrayLike | None = None,
     extension: ArrayLike | None = None,
     mode: str = "continuation",
+    guess: BoundaryValueSolution | tuple[ArrayLike, ArrayLike] | None = None,
     options: BoundaryValueOptions | None = None,
     segments: int | None = None,
     method: str | None = None,
@@ -449,7 +464,7 @@ def rotation_response(
     name, given = axial_controls(rotation=rotations, **held)
     values, _ = _point_values(name, given, owner)
     return _response(
-        rod, length, name, values, "rotation", mode=mode, owner=owner, throw=throw, options=with_settings(
+        rod, length, name, values, "rotation", mode=mode, owner=owner, throw=throw, guess=guess, options=with_settings(
             options, segments=segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
             ode_atol=ode_atol, adjoint=adjoint,
         ),

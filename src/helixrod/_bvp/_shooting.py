@@ -19,6 +19,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float
 
@@ -315,3 +316,49 @@ def initial(rod, length, start, end, guess, options: BoundaryValueOptions, guess
             x_nodes, frame_nodes = free_nodes(rod, length, start, k)
     y = jnp.concatenate([N / scales[1], M0 / scales[2], jnp.zeros(6 * (k - 1))])
     return y, x_nodes[1:k], frame_nodes[1:k]
+
+
+def _complete_elliptic(m: float) -> tuple[float, float]:
+    """(K(m), E(m)), the complete elliptic integrals of parameter m in [0, 1), by the
+    arithmetic-geometric mean (Abramowitz & Stegun 17.6)."""
+    # E = K (1 - sum_n 2^(n-1) c_n^2), c_0^2 = m, c_(n+1) = (a_n - b_n) / 2.
+    a, b, total, power = 1.0, float(np.sqrt(1.0 - m)), 0.5 * m, 1.0
+    while abs(a - b) > 1e-15 * a:
+        a, b, c = 0.5 * (a + b), float(np.sqrt(a * b)), 0.5 * (a - b)
+        total += power * c * c
+        power *= 2.0
+    K = np.pi / (2.0 * a)
+    return K, K * (1.0 - total)
+
+
+def buckled_guess(rod, length, start: Clamped, end: EndCondition, bending: float):
+    """The start wrench `(n0, m0)` (director frame) of the first buckled mode of a rod whose
+    clamped ends are brought closer than its length, or `None` where they are not.
+
+    The planar inflexional elastica of bending stiffness `bending` between parallel clamps
+    (Love, *Treatise*, sec. 263): with $k^2 = m$, its chord is $L(2E(m)/K(m) - 1)$, its
+    compressive force $P = B(4K(m)/L)^2$ and the moment at a clamp $B\\,2k\\sqrt{P/B}$; it bends
+    about the start frame's softest axis $d_1$ (the first stiffness is the smallest).  A
+    guess, not a solution: exact for an intrinsically straight isotropic rod with parallel
+    clamps, and a symmetry-breaking start for any other rod (concrete inputs)."""
+    chord = np.asarray(end.position - start.position, float)
+    ratio = float(np.linalg.norm(chord)) / float(length)
+    if not (-0.99 < ratio < 1.0 - 1e-9):
+        return None
+    axis = chord / max(np.linalg.norm(chord), 1e-300)
+    lo, hi = 0.0, 1.0 - 1e-15  # 2E/K - 1 falls from 1 to -1 on [0, 1)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        K, E = _complete_elliptic(mid)
+        lo, hi = (mid, hi) if 2.0 * E / K - 1.0 > ratio else (lo, mid)
+    K, _ = _complete_elliptic(0.5 * (lo + hi))
+    force = bending * (4.0 * K / float(length)) ** 2
+    frame = np.asarray(start.frame, float)
+    about = frame[:, 0] - (frame[:, 0] @ axis) * axis
+    if np.linalg.norm(about) < 1e-6:
+        about = frame[:, 1] - (frame[:, 1] @ axis) * axis
+    about = about / np.linalg.norm(about)
+    N = -force * axis
+    M0 = bending * 2.0 * np.sqrt(0.5 * (lo + hi)) * np.sqrt(force / bending) * about
+    dtype = np.asarray(start.frame).dtype
+    return (jnp.asarray(frame.T @ N, dtype), jnp.asarray(frame.T @ M0, dtype))

@@ -39,12 +39,13 @@ from .._misc import finite_scalar, float_dtype, increasing_within, is_concrete, 
 from .._rod import check_one_rod
 from .._status import RESULTS, promote, raise_if_failed
 from ._bulk import length_scale, stiffness_scale
-from ._ends import LOADED, AbstractEnd, Clamped, EndCondition, end_condition
+from ._ends import CLAMPED, LOADED, AbstractEnd, Clamped, EndCondition, end_condition
 from ._options import BoundaryValueOptions, with_settings
 from ._stability import PIECE_RESOLUTION, stability, stiffness_range
 from ._shooting import (
     ShootingArgs,
     WarmStart,
+    buckled_guess,
     default_warm_start,
     free_nodes,
     implicit,
@@ -340,23 +341,7 @@ def solve_boundary_value(
             raise ValueError(f"{owner}: {name} must be unbatched (jax.vmap over conditions)")
     length = finite_scalar(length, "length", owner, positive=True)
     default_guess = guess is None
-    guess_kind = "helix"
-    if isinstance(guess, str):
-        if guess not in ("helix", "zero"):
-            raise ValueError(f"{owner}: guess must be None, 'helix', 'zero', a solution or (n0, m0); got {guess!r}")
-        guess_kind, guess = guess, None
-    elif isinstance(guess, BoundaryValueSolution):
-        guess = guess.warm_start()
-    elif guess is not None:
-        try:
-            n0, m0 = (jnp.asarray(g, float_dtype()) for g in guess)
-        except (TypeError, ValueError):
-            raise ValueError(f"{owner}: guess must be None, 'helix', 'zero', a solution or (n0, m0)") from None
-        if n0.shape != (3,) or m0.shape != (3,):
-            raise ValueError(f"{owner}: guess (n0, m0) needs shapes (3,), got {n0.shape}, {m0.shape}")
-        if is_concrete(n0, m0) and not (np.all(np.isfinite(np.asarray(n0))) and np.all(np.isfinite(np.asarray(m0)))):
-            raise ValueError(f"{owner}: guess (n0, m0) must be finite")
-        guess = (n0, m0)
+    guess, guess_kind = parse_guess(guess, owner)
     if saveat is not None:
         saveat = increasing_within(saveat, length, "saveat", owner, slack=1e-12)
     if auto:
@@ -365,14 +350,45 @@ def solve_boundary_value(
         segments_needed, _, (n0, m0) = needed_segments(rod, length, start, end, guess, guess_kind)
         pieces = options.stability_pieces and max(options.stability_pieces, stability_pieces_for(rod, length, n0, m0))
         options = dataclasses.replace(options, segments=segments_needed, stability_pieces=min(pieces, MAX_STABILITY_PIECES))
-    if isinstance(guess, WarmStart) and guess.node_position.shape[0] != options.segments:
-        guess = (start.frame.T @ guess.force, start.frame.T @ guess.moment0)
+    guess = fit_guess(guess, options.segments, start)
     sol = solve(rod, length, start, end, guess, saveat, options, guess_kind)
     if is_concrete(sol) and jnp.ndim(sol.residual) == 0:
         sol = _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind)
     if throw and is_concrete(sol) and jnp.ndim(sol.residual) == 0 and not bool(sol.ok):
         raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _hint(sol, rod, length, start, end, guess, guess_kind))
     return raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _HINT) if throw else sol
+
+
+def fit_guess(guess, segments: int, start: Clamped):
+    """A `WarmStart` of another number of pieces as its start wrench `(n0, m0)`."""
+    if isinstance(guess, WarmStart) and guess.node_position.shape[0] != segments:
+        return (start.frame.T @ guess.force, start.frame.T @ guess.moment0)
+    return guess
+
+
+def parse_guess(guess, owner: str):
+    """(guess for `solve` -- pass it through `fit_guess` --, guess kind) from a user's
+    `guess=`: `None`, `"helix"`, `"zero"`, a `BoundaryValueSolution` or a pair `(n0, m0)` of
+    start wrenches (director frame)."""
+    if isinstance(guess, str):
+        if guess not in ("helix", "zero"):
+            raise ValueError(f"{owner}: guess must be None, 'helix', 'zero', a solution or (n0, m0); got {guess!r}")
+        return None, guess
+    if guess is None:
+        return None, "helix"
+    if isinstance(guess, BoundaryValueSolution):
+        if jnp.ndim(guess.residual) != 0:
+            raise ValueError(f"{owner}: guess must be one solution, not a batch of them")
+        return guess.warm_start(), "helix"
+    try:
+        n0, m0 = (jnp.asarray(g, float_dtype()) for g in guess)
+    except (TypeError, ValueError):
+        raise ValueError(f"{owner}: guess must be None, 'helix', 'zero', a solution or (n0, m0)") from None
+    if n0.shape != (3,) or m0.shape != (3,):
+        raise ValueError(f"{owner}: guess (n0, m0) needs shapes (3,), got {n0.shape}, {m0.shape}")
+    if is_concrete(n0, m0) and not (np.all(np.isfinite(np.asarray(n0))) and np.all(np.isfinite(np.asarray(m0)))):
+        raise ValueError(f"{owner}: guess (n0, m0) must be finite")
+    return (n0, m0), "helix"
 
 
 #: Spatial growth (lambda L) one shooting piece is trusted with (`wrench_growth_rate`: from
@@ -439,8 +455,10 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
     """The eager defaults that make a solve land on the physical state: more stability
     pieces where the test does not resolve the wrench, and, from the default guess, when
     the direct solve converges to an unstable equilibrium, a solve pushed to either side
-    along its most unstable direction; when that fails too, or the direct solve did,
-    homotopy continuation from the unloaded rod (`FALLBACK_CONTINUATION`)."""
+    along its most unstable direction; when that fails too, or the direct solve did: for an
+    intrinsically straight rod between clamps brought closer than its length, the first
+    buckled mode (`buckled_guess`), then homotopy continuation from the unloaded rod
+    (`FALLBACK_CONTINUATION`)."""
     moment_loaded = bool(end.kind == LOADED) and bool(jnp.any(end.moment != 0))
 
     def resolved(sol, options):
@@ -454,16 +472,33 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
 
     sol = resolved(sol, options)
     acceptable = lambda s: bool(s.ok) and int(s.instability_index) <= 0  # noqa: E731
+
+    def settled(trial):
+        """`trial`, or where it converged to an unstable state, a solve pushed from it to
+        either side along its most unstable direction, by two sizes; None if neither is
+        acceptable."""
+        if acceptable(trial) or not bool(trial.ok):
+            return trial if acceptable(trial) else None
+        for sign in (1.0, -1.0, 4.0, -4.0):
+            N = trial.force + sign * trial.unstable_direction[:3]
+            M0 = trial.moment0 + sign * trial.unstable_direction[3:]
+            pushed = resolved(solve(rod, length, start, end, (start.frame.T @ N, start.frame.T @ M0), saveat, options, guess_kind), options)
+            if acceptable(pushed):
+                return pushed
+        return None
+
     if not default_guess or options.continuation > 0 or acceptable(sol):
         return sol
-    if bool(sol.ok):
-        # Unstable: push along the most unstable direction, to both sides, by two sizes.
-        for sign in (1.0, -1.0, 4.0, -4.0):
-            N, M0 = sol.force + sign * sol.unstable_direction[:3], sol.moment0 + sign * sol.unstable_direction[3:]
-            push = (start.frame.T @ N, start.frame.T @ M0)
-            trial = resolved(solve(rod, length, start, end, push, saveat, options, guess_kind), options)
-            if acceptable(trial):
-                return trial
+    found = settled(sol)
+    if found is not None:
+        return found
+    bending = float(jax.jacfwd(no_gradient(rod).moment)(jnp.asarray(rod.uhat))[0, 0])
+    straight = not np.any(np.asarray(rod.uhat)[:2] != 0)
+    buckled = buckled_guess(rod, length, start, end, bending) if straight and int(end.kind) == CLAMPED else None
+    if buckled is not None:
+        found = settled(resolved(solve(rod, length, start, end, buckled, saveat, options, guess_kind), options))
+        if found is not None:
+            return found
     for steps in FALLBACK_CONTINUATION:
         homotopy = dataclasses.replace(options, continuation=steps)
         trial = resolved(solve(rod, length, start, end, None, saveat, homotopy, guess_kind), homotopy)

@@ -8,19 +8,23 @@ from importlib import metadata as _metadata
 
 from . import dna as dna, plot as plot
 from ._bvp import (
+    INSTABILITY_TYPES as INSTABILITY_TYPES,
     AbstractEnd as AbstractEnd,
     BoundaryValueOptions as BoundaryValueOptions,
     BoundaryValueSolution as BoundaryValueSolution,
+    Branch as Branch,
     BulkHelix as BulkHelix,
     Clamped as Clamped,
     EndCondition as EndCondition,
     Loaded as Loaded,
     ResponseCurve as ResponseCurve,
+    SpecialPoint as SpecialPoint,
     StabilityAtlas as StabilityAtlas,
     Tweezer as Tweezer,
     axial_ends as axial_ends,
     axial_response as axial_response,
     bulk_helix as bulk_helix,
+    follow_branch as follow_branch,
     force_extension as force_extension,
     rotation_response as rotation_response,
     solve_boundary_value as solve_boundary_value,

@@ -525,7 +525,8 @@ def plot_stability_atlas(atlas, path=None, *, slot=0):
     length $L$ clamped by its own wrench is stable (and how many unstable directions it
     has), with the pointwise criterion of `helix_equilibria` (a minimum of $W$ on the
     circle) outlined; right, the critical length at which it first loses stability, on a
-    log scale, white where it stays stable up to `max_length`."""
+    log scale, white where it stays stable up to `max_length`, marked by the type of that loss
+    of stability (`instability_type`: o fold, x symmetry-breaking)."""
     from matplotlib.colors import BoundaryNorm, ListedColormap, LogNorm
     from matplotlib.patches import Patch
 
@@ -555,6 +556,15 @@ def plot_stability_atlas(atlas, path=None, *, slot=0):
         fig.colorbar(mesh, ax=axes[1], label="critical length $L_c$")
         if finite.min() < float(atlas.length) < finite.max():
             axes[1].contour(tau, kappa, np.nan_to_num(critical, nan=0.0, posinf=1e300), levels=[float(atlas.length)], colors=[OKABE_ITO[1]], linewidths=1.2)
+    # The type of that loss of stability, a marker per grid point (codes of INSTABILITY_TYPES).
+    kind = np.asarray(atlas.instability_type[..., slot])
+    type_handles = []
+    for code, style, label in ((1, dict(marker="o", facecolors="none", edgecolors="k"), "fold"), (2, dict(marker="x", c="k"), "symmetry-breaking")):
+        where = kind == code
+        if where.any():
+            type_handles.append(axes[1].scatter(tau[where], kappa[where], s=12, linewidths=0.8, label=label, **style))
+    if type_handles:
+        axes[1].legend(handles=type_handles, loc="upper left", fontsize=7, framealpha=0.9)
     axes[1].set_title(f"first loss of stability (white: stable up to {float(atlas.max_length):.4g})")
     for ax in axes:
         ax.set_xlabel("torsion $\\tau$")

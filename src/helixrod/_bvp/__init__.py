@@ -1,7 +1,12 @@
 """Finite rods: end conditions, boundary-value solves by (multiple) shooting, and the
 axial response curves of springs and tweezer filaments."""
 
-from ._atlas import StabilityAtlas as StabilityAtlas, stability_atlas as stability_atlas
+from ._atlas import (
+    INSTABILITY_TYPES as INSTABILITY_TYPES,
+    StabilityAtlas as StabilityAtlas,
+    stability_atlas as stability_atlas,
+)
+from ._branch import Branch as Branch, SpecialPoint as SpecialPoint, follow_branch as follow_branch
 from ._bulk import BulkHelix as BulkHelix, bulk_helix as bulk_helix, bulk_helix_at as bulk_helix_at
 from ._ends import (
     AXIAL_CONTROLS as AXIAL_CONTROLS,

@@ -25,6 +25,32 @@ piece of length $h$ maps body variations by $e^{Ah}$, and the lab variations of 
 \\delta n)$, $\\delta M = D(\\xi\\times m + \\delta m)$ with $D(s) = e^{s[u]}$: every piece's
 transfer matrix is a matrix exponential and two rotations (`uniform_transfers`; checked
 against the integrated test in `tests/test_atlas.py`).
+
+**The type of the instability** at $L_c$ (Lyapunov--Schmidt).  The clamped piece is the
+equation $F(w) = g$: the start wrench $w = (N, M_0)$ to the end pose $g$; at $L_c$ its
+linearisation $B = \\partial(\\delta x, \\delta\\theta)/\\partial(\\delta N, \\delta M_0)$ (end body
+coordinates) has a null vector, the start wrench of the Jacobi field (`critical_mode`), and a
+left null vector $\\ell$, $\\ell^T B = 0$: by the reciprocity of the second variation, the
+Jacobi field's reaction on the end clamp.  The experimenter moves the end by the helix's
+axial controls: $c_1$ = extension along its axis ($\\delta x = a$, $\\delta\\theta = 0$), $c_2$ =
+rotation about it ($\\delta\\theta = a$, $\\delta x = a\\times r$), in body coordinates $a = u/|u|$
+and $r = (e_3\\times u)/|u|^2$ from the axis to the end: the screw axis of the helix, which is
+the central axis of its wrench, $r = (m\\times n)/|n|^2$, where $n \\ne 0$, and is defined
+where $n = 0$ as well.  $F(w) = g + \\varepsilon c$ is solvable near the helix to first order
+only if $\\ell\\cdot c = 0$ (the projection of the equation on the cokernel).  So if
+$\\ell\\cdot c \\ne 0$ for a control, the solutions form one curve through the helix, tangent
+to the Jacobi field, along which $\\varepsilon$ is stationary: the response to that control
+turns back, a **fold** (limit point; the stiffness $c^T D B^{-1} c$ of the piece to it has a
+pole at $L_c$).  If $\\ell\\cdot c_1 = \\ell\\cdot c_2 = 0$ the control path stays in the range of
+$B$: the family of helices continues through $L_c$ and a second family crosses it, a
+**symmetry-breaking** bifurcation (branch point).  That is what a symmetry forces: the
+reversal of a helix whose register has $u_1 = 0$ (a rotation by $\\pi$ about the principal
+normal at its middle, for a rod with $W(-u_1, u_2, u_3) = W(u)$) maps the controls to
+themselves, so an antisymmetric Jacobi field has $\\ell\\cdot c = 0$; the rotations of a
+straight twisted rod about its axis make every Jacobi field non-axisymmetric (Greenhill's
+shaft, $L_c = 8.9868\\,K/M$, a double conjugate point).  $\\ell$ is paired in the dimensionless
+variations $(\\delta x/L_c, \\delta\\theta)$ and the pairings below `BRANCH_TOLERANCE` of the
+sizes count as zero.
 """
 
 from __future__ import annotations
@@ -36,11 +62,11 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._equilibria import helix_equilibria
-from .._misc import check_integer, determinant_small, finite_scalar, float_dtype
+from .._misc import check_integer, finite_scalar, float_dtype, solve_small
 from .._lie import hat, so3_exp
 from .._rod import check_one_rod
 from ._ends import CLAMPED, end_condition
-from ._stability import EXTENSIBILITY, assess, stiffness_range
+from ._stability import EXTENSIBILITY, PIECE_RESOLUTION, assess, piece_hessian, stiffness_range
 
 
 class StabilityAtlas(eqx.Module):
@@ -51,7 +77,15 @@ class StabilityAtlas(eqx.Module):
     not resolve the wrench -- raise `pieces`), `stability_margin` (NaN where not defined),
     `critical_length` (the shortest length at which the clamped helix loses stability,
     within `max_length`; `inf` where it is stable up to `max_length`, NaN where not
-    computed or defined); `pointwise_stable` the `stable` of `helix_equilibria` (a local
+    computed or defined: not asked for, or the sample step `max_length / 64` does not
+    resolve the wrench); `instability_type` the type of that loss of stability (module
+    docstring; names in `INSTABILITY_TYPES`): 0 none (stable up to `max_length`, or not
+    computed), 1 fold (limit point of the response to the axial controls), 2
+    symmetry-breaking (branch point), -1 not defined (invalid slot, or `critical_length`
+    NaN); `critical_mode` (`batch + (4, 6)`) the buckling mode: the start-wrench variation
+    $(\\delta N, \\delta M_0)$ of the Jacobi field at `critical_length`, as the unit vector
+    $(L_c\\,\\delta N, \\delta M_0)/|\\cdot|$ (sign arbitrary; NaN where there is no critical
+    length); `pointwise_stable` the `stable` of `helix_equilibria` (a local
     minimum of $W$ on the circle of registers), for comparison; `kappa`, `tau` (`batch`),
     `length`, `max_length`."""
 
@@ -64,6 +98,8 @@ class StabilityAtlas(eqx.Module):
     instability_index: Int[Array, "*batch 4"]
     stability_margin: Float[Array, "*batch 4"]
     critical_length: Float[Array, "*batch 4"]
+    instability_type: Int[Array, "*batch 4"]
+    critical_mode: Float[Array, "*batch 4 6"]
 
     @property
     def stable(self) -> Bool[Array, "*batch 4"]:
@@ -111,9 +147,21 @@ def uniform_transfers(rod, n, m, length, pieces: int):
     return transfers, n, end_position
 
 
-#: Lengths sampled in (0, max_length] for the first sign change of the conjugate-point
-#: determinant, before bisection.
+#: Lengths sampled in (0, max_length] for the first conjugate point, before bisection.
 CRITICAL_SAMPLES = 64
+
+#: Names of the `instability_type` codes 0, 1, 2 of `StabilityAtlas` (-1: not defined).
+INSTABILITY_TYPES = ("none", "fold", "symmetry-breaking")
+NONE, FOLD, SYMMETRY_BREAKING = range(3)
+
+#: The axial controls lie in the range of $B$ (a symmetry-breaking loss of stability) where
+#: their pairings with the unit left null vector are below this, relative to their size:
+#: far above the round-off of a symmetric pairing (~1e-10), far below a fold's (~1e-2).
+BRANCH_TOLERANCE = 1e-4
+
+#: Inverse iterations for the Jacobi field at the critical length: the smallest eigenvalue
+#: of the last Schur complement, after the bisections, lies ~1e-6 or more below the next.
+NULL_ITERATIONS = 3
 
 
 #: Fixed scaling and squaring of `_expm`: exact to round-off for $\\|A\\|_1 \\le$ `EXPM_RANGE`.
@@ -154,41 +202,142 @@ def _body_transfer(rod, n, m, s):
     return _with_extensibility(rod, T, s)
 
 
-def _critical_length(rod, n, m, max_length, bisections: int):
-    """The first zero in (0, `max_length`] of the conjugate-point determinant
-    $\\det\\partial(x, \\theta)(s)/\\partial(N, M_0)$ of the clamped helix (Manning, Rogers &
-    Maddocks 1998: the isoperimetric conjugate points, the multiplier $N$ varied with $M_0$);
-    `inf` if it has none there.  Zeros of even multiplicity, which need a symmetry, leave
-    the sign unchanged and are missed (the index at `length` still counts them); and where
-    the helix is spatially unstable (`wrench_growth_rate` $\\lambda > 0$) the determinant's
-    entries grow like $e^{\\lambda s}$ and its sign loses precision at long lengths (measured:
-    lengths near 19 of a `max_length` of 20 moved by 1-5 % between two ways of evaluating
-    it, those below 12 not at all) -- the index at `length` is the robust answer."""
-    sign = lambda s: jnp.sign(determinant_small(_body_transfer(rod, n, m, s)[:6, 6:]))  # noqa: E731
-    lengths = max_length * jnp.arange(1, CRITICAL_SAMPLES + 1) / CRITICAL_SAMPLES
-    # The samples by powers of one step's exponential (the flow is a one-parameter group).
-    to_lab, step = _to_lab(n, m), _expm(_body_variation_matrix(rod, n, m) * lengths[0])
-    to_body = _to_lab(n, m, -1.0)
+def _negative_count(S):
+    """The number of negative eigenvalues of a small symmetric matrix, by Sylvester's law of
+    inertia: the signs of the pivots of its symmetric elimination (largest remaining diagonal
+    first; pure arithmetic, no LAPACK call)."""
+    size = S.shape[-1]
+    rows = jnp.arange(size)
+    remaining = jnp.ones(size, bool)
+    count = jnp.zeros((), jnp.int32)
+    for _ in range(size):
+        p = jnp.argmax(jnp.where(remaining, jnp.abs(jnp.diagonal(S)), -1.0))
+        column = S[:, p]
+        pivot = column[p]
+        count = count + (pivot < 0)
+        S = S - jnp.outer(column, column) / jnp.where(pivot == 0, 1.0, pivot)
+        remaining = remaining & (rows != p)
+    return count
 
-    def sample(E, s):
-        E = E @ step
-        return E, jnp.sign(determinant_small(_with_extensibility(rod, to_lab @ E @ to_body, s)[:6, 6:]))
 
-    _, signs = jax.lax.scan(sample, jnp.eye(12, dtype=n.dtype), lengths)
-    first_sign = sign(max_length * 1e-3 / CRITICAL_SAMPLES)
-    changed = signs != first_sign
-    j = jnp.argmax(changed)
-    lo = jnp.where(j > 0, lengths[jnp.maximum(j - 1, 0)], 0.0)
-    hi = lengths[j]
+def _node_blocks(rod, n, m, h, scale):
+    """The blocks (H_aa, H_ab, H_bb) of the Hessian of a piece of length `h` in its two nodes'
+    body variations (`piece_hessian`; the symmetric part, as `second_variation`), the node
+    positions scaled by `scale` (a congruence: the inertia is unchanged, the pivots balanced)."""
+    weight = jnp.concatenate([jnp.full(3, scale), jnp.ones(3, n.dtype)])
+    H = piece_hessian(_body_transfer(rod, n, m, h)) * jnp.tile(weight, 2)[:, None] * jnp.tile(weight, 2)[None, :]
+    H = 0.5 * (H + H.T)
+    return H[:6, :6], H[:6, 6:], H[6:, 6:]
+
+
+def _conjugate_point(rod, n, m, max_length, bisections: int):
+    """(length, mode, reaction) of the clamped helix with body wrench (n, m): its first
+    conjugate point in (0, `max_length`] (Manning, Rogers & Maddocks 1998: the isoperimetric
+    conjugate points, where $\\det\\partial(x, \\theta)(s)/\\partial(N, M_0) = 0$), `inf` if it
+    has none there, NaN where the sample step does not resolve the wrench; the unit start
+    wrench $(L\\,\\delta N, \\delta M_0)$ of its Jacobi field and the field's unit reaction on the end
+    clamp, paired with the end's $(\\delta x / L, \\delta\\theta)$.
+
+    Counted, not sought as a sign change of that determinant, because a symmetry makes its
+    zeros double (a straight twisted rod of isotropic bending: the determinant is a squared
+    modulus and touches zero at Greenhill's length).  The index of the clamped piece of length
+    $(k + 1)\\Delta + r$ ($\\Delta$ = `max_length / CRITICAL_SAMPLES`) is that of the broken
+    extremal of `_stability.py` on $k + 1$ pieces of $\\Delta$ and one of $r$, whose block
+    tridiagonal Hessian has every piece alike in body coordinates.  Its block $LDL^T$
+    elimination is a Riccati recursion: $S_1 = P$, $S_{j+1} = P - Q^T S_j^{-1} Q$ ($P$ the
+    node block, $Q$ the coupling), and the index is the sum of the negative eigenvalues of the
+    $S_j$ (Sylvester).  The first $S_j$ with a negative eigenvalue brackets the conjugate
+    point; bisection on $r$ of the same count refines it.  There the last $S_k$ is singular:
+    its null vector, back-substituted ($\\zeta_j = -S_j^{-1}Q\\zeta_{j+1}$), is the Jacobi field
+    at the nodes; its start wrench is the mode, its reaction on the end clamp the left null
+    vector $\\ell$ of $B$ (module docstring)."""
+    step = max_length / CRITICAL_SAMPLES
+    k_min = stiffness_range(rod)[0]
+    resolved = step * (jnp.sqrt(jnp.linalg.norm(n) / k_min) + jnp.linalg.norm(m) / k_min) <= PIECE_RESOLUTION
+    H_aa, Q, H_bb = _node_blocks(rod, n, m, step, step)
+    node = H_bb + H_aa
+
+    def sample(G, _):
+        S = node - G  # the Schur complement at node j: clamped length (j + 1) step
+        return Q.T @ solve_small(S, Q), (_negative_count(S), S)
+
+    _, (counts, schur) = jax.lax.scan(sample, jnp.zeros((6, 6), n.dtype), None, length=CRITICAL_SAMPLES - 1)
+    changed = counts > 0
+    k = jnp.argmax(changed)
+    G = node - schur[k]  # the correction at the last free node
+
+    def last_schur(r):
+        return H_bb + _node_blocks(rod, n, m, r, step)[0] - G
 
     def bisect(bracket, _):
         lo, hi = bracket
         mid = 0.5 * (lo + hi)
-        same = sign(mid) == first_sign
-        return (jnp.where(same, mid, lo), jnp.where(same, hi, mid)), None
+        before = _negative_count(last_schur(mid)) == 0
+        return (jnp.where(before, mid, lo), jnp.where(before, hi, mid)), None
 
-    (lo, hi), _ = jax.lax.scan(bisect, (lo, hi), None, length=bisections)
-    return jnp.where(jnp.any(changed), 0.5 * (lo + hi), jnp.inf)
+    (lo, hi), _ = jax.lax.scan(bisect, (jnp.zeros((), n.dtype), step), None, length=bisections)
+    r = 0.5 * (lo + hi)
+    found = jnp.any(changed)
+    length = jnp.where(found, (k + 1) * step + r, jnp.inf)
+    length = jnp.where(resolved, length, jnp.nan)
+
+    # The Jacobi field at the nodes, scaled (dx / step, dtheta): the null vector of the last
+    # Schur complement, then back along the others (those beyond node k left as they are).
+    last = _null_vector(last_schur(r))
+
+    def back(zeta, j):
+        earlier = -solve_small(schur[j], Q @ zeta)
+        return jnp.where(j < k, earlier, zeta), None
+
+    first, _ = jax.lax.scan(back, last, jnp.arange(CRITICAL_SAMPLES - 1), reverse=True)
+    weight = jnp.concatenate([jnp.full(3, step), jnp.ones(3, n.dtype)])
+    # The start wrench that bends the first piece into it (B^{-1} of that piece), as
+    # (L dN, dM0): both parts moments.
+    wrench = solve_small(_body_transfer(rod, n, m, step)[:6, 6:], weight * first)
+    mode = jnp.concatenate([length * wrench[:3], wrench[3:]])
+    mode = mode / jnp.linalg.norm(mode)
+    # Its reaction on the end clamp, paired with (dx / step, dtheta), then (dx / L, dtheta).
+    reaction = _node_blocks(rod, n, m, r, step)[1].T @ last * jnp.concatenate([jnp.full(3, length / step), jnp.ones(3, n.dtype)])
+    return length, mode, reaction / jnp.linalg.norm(reaction)
+
+
+def _critical_point(rod, n, m, max_length, bisections: int):
+    """(critical length, instability type, critical mode) of the clamped helix with body
+    wrench (n, m) (`_conjugate_point`; module docstring): type 0 where it has no conjugate
+    point within `max_length`, -1 where not resolved; the mode NaN where there is none."""
+    length, mode, reaction = _conjugate_point(rod, n, m, max_length, bisections)
+    controls = _axial_controls(rod, m, length)
+    pairing = jnp.abs(controls @ reaction) / jnp.linalg.norm(controls, axis=1)
+    kind = jnp.where(jnp.all(pairing < BRANCH_TOLERANCE), SYMMETRY_BREAKING, FOLD)
+    kind = jnp.where(jnp.isfinite(length), kind, jnp.where(jnp.isnan(length), -1, NONE))
+    return length, kind.astype(jnp.int32), jnp.where(jnp.isfinite(length), mode, jnp.nan)
+
+
+def _axial_controls(rod, m, length):
+    """The two axial controls of the end, (dx / length, dtheta) in its body coordinates
+    `(2, 6)`: extension along the helix axis and rotation about it (module docstring)."""
+    u = rod.twist(m)
+    e3 = jnp.zeros(3, m.dtype).at[2].set(1.0)
+    size = jnp.linalg.norm(u)
+    straight = size == 0
+    axis = jnp.where(straight, e3, u / jnp.where(straight, 1.0, size))
+    # From the axis to the end: the screw axis of the helix's motion (velocity e3, angular
+    # velocity u) -- where the force is not zero, the central axis of its wrench.
+    r = jnp.where(straight, 0.0, jnp.cross(e3, u) / jnp.where(straight, 1.0, size**2))
+    zero = jnp.zeros(3, m.dtype)
+    return jnp.stack([jnp.concatenate([axis / length, zero]), jnp.concatenate([jnp.cross(axis, r) / length, axis])])
+
+
+def _null_vector(S):
+    """The unit vector spanning (nearly) the null space of a (nearly) singular small symmetric
+    matrix, by inverse iteration (each solve amplifies the direction of the eigenvalue nearest
+    zero by its inverse); a shift of round-off size keeps an exactly singular one finite."""
+    S = S + 1e-14 * jnp.max(jnp.abs(S)) * jnp.eye(S.shape[-1], dtype=S.dtype)
+    v = jnp.array([0.9, -0.7, 0.6, 0.8, -0.5, 0.4], S.dtype)  # generic: no symmetry's zero
+    for _ in range(NULL_ITERATIONS):
+        v = solve_small(S, v)
+        v = v / jnp.linalg.norm(v)
+    return v
 
 
 def _clamped_helix_stability(rod, n, m, length, pieces: int):
@@ -217,9 +366,12 @@ def _atlas(rod, kappa, tau, length, pieces: int, chunk_size: int):
 def _critical_lengths(rod, n, m, valid, max_length, bisections: int, chunk_size: int):
     # A program of its own: compiled into `_atlas`, beside the batched eigh of the index, it
     # deadlocked XLA's CPU thread pool (jaxlib 0.10.2, 2 cores, concurrency-optimised
-    # scheduler) on a 10 x 10 grid; apart, neither does.
-    critical = jax.lax.map(lambda w: _critical_length(rod, *w, max_length, bisections), (n, m), batch_size=chunk_size)
-    return jnp.where(valid, critical.reshape(valid.shape), jnp.nan)
+    # scheduler) on a 10 x 10 grid; apart, neither does.  So no LAPACK call in here either.
+    critical, kind, mode = jax.lax.map(lambda w: _critical_point(rod, *w, max_length, bisections), (n, m), batch_size=chunk_size)
+    critical = jnp.where(valid, critical.reshape(valid.shape), jnp.nan)
+    kind = jnp.where(valid, kind.reshape(valid.shape), -1)
+    mode = jnp.where(valid[..., None], mode.reshape(valid.shape + (6,)), jnp.nan)
+    return critical, kind, mode
 
 
 def stability_atlas(
@@ -239,8 +391,11 @@ def stability_atlas(
 
     - `rod`: one `Rod`; `kappa`, `tau`: broadcasting arrays (e.g. a `meshgrid`).
     - `critical_length`: also find the shortest length at which each clamped helix loses
-      stability: the first zero of the conjugate-point determinant in $(0,$ `max_length`$]$
-      (default `4 * length`), bracketed on 64 lengths and refined by `bisections` halvings.
+      stability: its first conjugate point in $(0,$ `max_length`$]$ (default `4 * length`),
+      counted with its multiplicity on 64 lengths and refined by `bisections` halvings
+      (NaN where that step does not resolve the wrench, as `pieces` for the index), the
+      type of the instability there (fold or symmetry-breaking, with respect to the axial
+      controls of the end) and its mode.
     - `pieces`: pieces of each test (`BoundaryValueOptions.stability_pieces`); where they do
       not resolve a helix's wrench its index is -1: raise them.
     - `chunk_size`: helices tested at once (memory).
@@ -274,11 +429,13 @@ def stability_atlas(
     chunk_size = check_integer(chunk_size, "chunk_size", owner)
     valid, pointwise, index, margin, n, m = _atlas(rod, kappa, tau, jnp.asarray(length, dtype), pieces, chunk_size)
     if critical_length:
-        critical = _critical_lengths(rod, n, m, valid, jnp.asarray(max_length, dtype), bisections, chunk_size)
+        critical, kind, mode = _critical_lengths(rod, n, m, valid, jnp.asarray(max_length, dtype), bisections, chunk_size)
     else:
         critical = jnp.full(valid.shape, jnp.nan, dtype)
+        kind = jnp.where(valid, NONE, -1).astype(jnp.int32)
+        mode = jnp.full(valid.shape + (6,), jnp.nan, dtype)
     return StabilityAtlas(
         kappa=kappa, tau=tau, length=jnp.asarray(length, dtype), max_length=jnp.asarray(max_length, dtype),
         valid=valid, pointwise_stable=pointwise, instability_index=index, stability_margin=margin,
-        critical_length=critical,
+        critical_length=critical, instability_type=kind, critical_mode=mode,
     )

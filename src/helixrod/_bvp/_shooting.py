@@ -137,7 +137,7 @@ def _pieces(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: b
     return (N, M0, xs, frames), ends
 
 
-def _residual(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: bool = True):
+def shooting_residual(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: bool = True):
     """The 6k shooting equations; aux: the nodes and end states."""
     nodes, ends = _pieces(y, args, options, materialise)
     _, _, xs, frames = nodes
@@ -153,7 +153,7 @@ def root(y0, args: ShootingArgs, options: BoundaryValueOptions):
     """Solve the shooting equations (no derivatives: see `implicit`).  Returns the root,
     the pieces there (aux), the largest scaled residual, the result code and the number of
     steps."""
-    fn = lambda y, a: _residual(y, a, options)  # noqa: E731
+    fn = lambda y, a: shooting_residual(y, a, options)  # noqa: E731
     solver = LevenbergMarquardtBroyden(atol=options.atol, damped=options.method != "newton")
     y0, args = no_gradient((y0, args))
     sol = optx.root_find(fn, solver, y0, args, has_aux=True, max_steps=options.max_steps, throw=False)
@@ -181,10 +181,10 @@ def _implicit_jvp(primals, tangents, *, options):
     if t_args is None or not jax.tree.leaves(t_args):
         return (y, pieces), jax.tree.map(jnp.zeros_like, (y, pieces))
     exact = eqx.tree_at(lambda a: a.ode_tol, args, jnp.concatenate([args.ode_tol[:2], args.ode_tol[:2]]))
-    _, lin = jax.linearize(lambda z: _residual(z, exact, options), y)
+    _, lin = jax.linearize(lambda z: shooting_residual(z, exact, options), y)
     jac, pieces_jac = jax.vmap(lin, out_axes=-1)(jnp.eye(y.size, dtype=y.dtype))
     diff, static, t_diff = _tangent_part(args, t_args)
-    residual = lambda d: _residual(y, eqx.combine(d, static), options, materialise=False)  # noqa: E731
+    residual = lambda d: shooting_residual(y, eqx.combine(d, static), options, materialise=False)  # noqa: E731
     _, (b, t_pieces) = jax.jvp(residual, (diff,), (t_diff,))
     good = jnp.all(jnp.isfinite(jac))
     safe = jnp.where(good, jac, jnp.eye(y.size, dtype=y.dtype))

@@ -30,6 +30,7 @@ def stability_command(
     import jax.numpy as jnp
 
     from .. import stability_atlas
+    from .. import INSTABILITY_TYPES
     from .._misc import write_atomically
     from ..plot import plot_stability_atlas
 
@@ -55,13 +56,17 @@ def stability_command(
         f"stable: {int((defined & (index == 0)).sum())}, unstable: {int((defined & (index > 0)).sum())}, "
         f"not resolved: {int((valid & (index < 0)).sum())}" + (" (raise --pieces)" if (valid & (index < 0)).any() else "")
     )
+    if critical:
+        kind = np.asarray(atlas.instability_type)
+        counts = ", ".join(f"{name}: {int((kind == code).sum())}" for code, name in enumerate(INSTABILITY_TYPES))
+        console.print(f"instability at the critical length -- {counts}, not defined: {int((valid & (kind < 0)).sum())}")
     pointwise = np.asarray(atlas.pointwise_stable)
     console.print(
         f"pointwise-stable registers (minimum of W on the circle) unstable as clamped helices: "
         f"{int((defined & pointwise & (index > 0)).sum())} of {int((defined & pointwise).sum())}"
     )
     if out is not None:
-        fields = {name: np.asarray(getattr(atlas, name)) for name in ("kappa", "tau", "valid", "pointwise_stable", "instability_index", "stability_margin", "critical_length")}
+        fields = {name: np.asarray(getattr(atlas, name)) for name in ("kappa", "tau", "valid", "pointwise_stable", "instability_index", "stability_margin", "critical_length", "instability_type", "critical_mode")}
         fields.update(length=np.asarray(atlas.length), max_length=np.asarray(atlas.max_length))
         write_atomically(out, lambda file: np.savez(file, **fields))
         console.print(f"wrote {out}")

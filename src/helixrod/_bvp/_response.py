@@ -260,12 +260,13 @@ def axial_response(
     or `"independent"` (vmapped solves from the bulk guess).  `rotation_hint` `(n,)`
     (independent mode): count the whole turns of a responding rotation nearest these
     values (e.g. measured ones) instead of the bulk prediction's; `bulk=False` skips the
-    bulk prediction (its fields NaN).  `guess`: where to start -- a `BoundaryValueSolution` (e.g. a buckled state found by
-    `solve_boundary_value` or `follow_branch`) or a pair `(n0, m0)` of start wrenches
-    (director frame): the first point's start in continuation mode (the default guess
-    where that fails), every point's in independent mode.  `options` and the keywords after it: as
-    `solve_boundary_value`.  `throw`: raise `SolverError` if any point fails (default
-    `False`: failed points have `ok = False` and NaN observables).  jit/vmap safe.
+    bulk prediction (its fields NaN).  `guess`: where to start -- a
+    `BoundaryValueSolution` (e.g. a buckled state found by `solve_boundary_value` or
+    `follow_branch`) or a pair `(n0, m0)` of start wrenches (director frame): the first
+    point's start in continuation mode (the default guess where that fails), every point's
+    in independent mode.  `options` and the keywords after it: as `solve_boundary_value`.
+    `throw`: raise `SolverError` if any point fails (default `False`: failed points have
+    `ok = False` and NaN observables).  jit/vmap safe.
     """
     owner = "axial_response"
     try:
@@ -396,8 +397,8 @@ def force_extension(
     `mode`: `"continuation"` (default; in order, each solve warm-started from the
     previous -- sort `forces` from small to large) or `"independent"` (vmapped solves from
     the bulk guess).  `guess` as `axial_response`.  `options` and the keywords after it: as
-    `solve_boundary_value`; `throw` as `axial_response`.  jit/vmap safe (e.g. `jax.vmap` over lengths); unconverged
-    points have `ok = False` and NaN observables.
+    `solve_boundary_value`; `throw` as `axial_response`.  jit/vmap safe (e.g. `jax.vmap`
+    over lengths); unconverged points have `ok = False` and NaN observables.
 
     **Example**
 

@@ -477,8 +477,10 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
         """`trial`, or where it converged to an unstable state, a solve pushed from it to
         either side along its most unstable direction, by two sizes; None if neither is
         acceptable."""
-        if acceptable(trial) or not bool(trial.ok):
-            return trial if acceptable(trial) else None
+        if acceptable(trial):
+            return trial
+        if not bool(trial.ok):
+            return None
         for sign in (1.0, -1.0, 4.0, -4.0):
             N = trial.force + sign * trial.unstable_direction[:3]
             M0 = trial.moment0 + sign * trial.unstable_direction[3:]

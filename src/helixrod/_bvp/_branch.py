@@ -236,9 +236,9 @@ def follow_branch(
       below `min_step`.
     - `switch`: a branch point (`SpecialPoint`) of an earlier branch: start there instead and
       follow the bifurcating branch, in `direction` (+1 or -1: its two halves).
-    - `step`, `max_step`, `min_step`: arclength steps in the scaled unknowns (forces and
-      moments in the units of `BoundaryValueOptions.atol`, the parameter in units of the
-      width of the interval).
+    - `step`, `max_step`, `min_step`: arclength steps in the scaled unknowns (forces in
+      units of $\\bar K/\\ell^2$ and moments of $\\bar K/\\ell$, as the residual scales of
+      `BoundaryValueOptions.atol`; the parameter in units of the width of the interval).
     - `options`, `segments`, `stability_pieces`: as `solve_boundary_value` (the stability of
       every point costs about a solve; `stability_pieces=0` turns it off).
 

@@ -15,8 +15,8 @@ Closed forms (straight rod, bending stiffness B, length L, clamped at s = 0):
   axis make it a double one (the index jumps by 2);
 - both ends clamped, brought together along their common axis to a chord $h < L$: the first
   buckled mode is the planar inflexional elastica, a full period of the pendulum
-  $B\theta'' = -P\sin\theta$ (Love, sec. 263): with $m = \sin^2(\alpha/2)$ of its largest
-  angle $\alpha$, $L\sqrt{P/B} = 4K(m)$ and $h/L = 2E(m)/K(m) - 1$.
+  $B\\theta'' = -P\\sin\\theta$ (Love, sec. 263): with $m = \\sin^2(\\alpha/2)$ of its largest
+  angle $\\alpha$, $L\\sqrt{P/B} = 4K(m)$ and $h/L = 2E(m)/K(m) - 1$.
 """
 
 import mpmath
@@ -201,7 +201,7 @@ def test_undefined_stability_is_flagged():
 def clamped_elastica(h):
     """(compressive force P, clamp moment) of the first buckled mode between parallel
     clamps at chord `h` (module docstring), B = 1: the clamp moment is
-    $B\theta'(0) = 2\sqrt{m P B}$ (the pendulum's energy at $\theta = 0$)."""
+    $B\\theta'(0) = 2\\sqrt{m P B}$ (the pendulum's energy at $\\theta = 0$)."""
     m = scipy.optimize.brentq(lambda m: 2 * scipy.special.ellipe(m) / scipy.special.ellipk(m) - 1 - h / L, 0, 1 - 1e-15)
     P = (4 * scipy.special.ellipk(m) / L) ** 2
     return P, 2 * np.sqrt(m * P)

@@ -1,4 +1,6 @@
 import collections
+import os
+import tempfile
 
 import jax
 import numpy as np
@@ -6,6 +8,14 @@ import pytest
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
+
+# The CLI tests run commands in this process, and a command turns on the persistent
+# compilation cache (the CLI's default) for the rest of the process.  Keep that cache per
+# test process and run, not the user's ~/.cache/helixrod: a CI worker aborted (a fatal
+# error inside jax's compilation_cache.get_executable_and_time) reading back an executable
+# that another checkout's test run had cached there; with a fresh directory nothing foreign
+# is read.
+os.environ["HELIXROD_CACHE_DIR"] = tempfile.mkdtemp(prefix=f"helixrod-cache-{os.environ.get('PYTEST_XDIST_WORKER', 'main')}-")
 
 
 def pytest_configure(config):

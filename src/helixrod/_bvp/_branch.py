@@ -41,7 +41,7 @@ from .._rod import check_one_rod
 from ._bulk import length_scale, stiffness_scale
 from ._ends import AbstractEnd, Clamped
 from ._options import BoundaryValueOptions, with_settings
-from ._shooting import ShootingArgs, nodes_of, shooting_residual
+from ._shooting import ShootingArgs, shooting_residual
 from ._solve import solve_boundary_value
 from ._stability import stability
 
@@ -175,15 +175,12 @@ def _point(z_pred, row, target, previous, problem, end_at, options):
         return z - dz, i + 1, jnp.where(done, 0.0, jnp.maximum(jnp.max(jnp.abs(g)), jnp.max(jnp.abs(dz))))
 
     z, steps, _ = jax.lax.while_loop(unfinished, newton, (z_pred, jnp.asarray(0), jnp.asarray(jnp.inf, z_pred.dtype)))
-    g = G(z)
+    args = _args(problem, end_at, z[-1] * problem.scale, options)
+    g, ((N, M0, xs, frames), ends) = shooting_residual(z[:-1], args, options)
     J = jax.jacfwd(G)(z)
     residual = jnp.max(jnp.abs(g))
     converged = jnp.isfinite(residual) & (residual <= 10 * tolerance) & jnp.all(jnp.isfinite(J))
     t, sign = _tangent(jnp.where(converged, J, 0.0), previous)
-    args = _args(problem, end_at, z[-1] * problem.scale, options)
-    k = options.segments
-    N, M0, xs, frames = nodes_of(z[:-1], args, k)
-    _, (nodes, ends) = shooting_residual(z[:-1], args, options)
     if options.stability_pieces > 0:
         index, margin, _ = stability(problem.rod, problem.length, args.end, N, M0, xs, frames, options)
     else:

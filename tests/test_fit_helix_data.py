@@ -28,7 +28,8 @@ def test_bad_inputs_give_documented_errors(tmp_path):
     with pytest.raises(ValueError, match="mismatched lengths"):
         hr.HelixData(**{**ok, "tau": [0.1]})
     with pytest.raises(ValueError, match=r"non-finite.*rows \[1\]"):
-        hr.HelixData(**{**ok, "moment": [0.5, np.nan]})
+        hr.HelixData(**{**ok, "moment": [0.5, np.inf]})
+    assert not bool(hr.HelixData(**{**ok, "moment": [0.5, np.nan]}).moment_observed[1])  # NaN: not measured
     with pytest.raises(ValueError, match=r"force_sigma must be > 0; rows \[0\]"):
         hr.HelixData(**ok, force_sigma=[0.0, 1.0])
     with pytest.raises(ValueError, match="kappa must be > 0"):
@@ -38,7 +39,7 @@ def test_bad_inputs_give_documented_errors(tmp_path):
     flipped = hr.HelixData(**ok, convention="advance")
     np.testing.assert_array_equal(np.asarray(flipped.force), [1.0, -2.0])
     path = tmp_path / "bad.csv"
-    path.write_text("force,moment,kappa,tau,force_sigma,moment_sigma\nN,N m,1/m,1/m,N,N m\n1,1,1,1,1,1\n1,nan,1,1,1,1\n")
+    path.write_text("force,moment,kappa,tau,force_sigma,moment_sigma\nN,N m,1/m,1/m,N,N m\n1,1,1,1,1,1\n1,inf,1,1,1,1\n")
     with pytest.raises(ValueError, match=r"lines \[4\]"):
         hr.HelixData.from_csv(path)
     path.write_text("force,moment,kappa,tau\n1,1,1,1\n")

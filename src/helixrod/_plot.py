@@ -77,20 +77,26 @@ def plot_fit(data, fit, path=None):
 
     fig = Figure(figsize=(13, 4.2), layout="constrained")
     axes = fig.subplots(1, 3)
-    n = len(data)
     r = np.asarray(fit.residuals)
-    for ax, obs, pred, sig, label, colour in (
-        (axes[0], data.force, fit.predicted["force"], data.force_sigma, "axial force $F$", OKABE_ITO[0]),
-        (axes[1], data.moment, fit.predicted["moment"], data.moment_sigma, "axial moment $M$", OKABE_ITO[1]),
+    start = 0
+    for ax, name, label, colour, marker in (
+        (axes[0], "force", "axial force $F$", OKABE_ITO[0], "o"),
+        (axes[1], "moment", "axial moment $M$", OKABE_ITO[1], "s"),
     ):
-        obs, pred, sig = np.asarray(obs), np.asarray(pred), np.asarray(sig)
+        seen = np.flatnonzero(np.asarray(getattr(data, f"{name}_observed")))
+        if not seen.size:  # partial data: this quantity was not measured
+            ax.text(0.5, 0.5, f"{label}\nnot measured", ha="center", va="center", transform=ax.transAxes)
+            ax.set_axis_off()
+            continue
+        obs, pred = np.asarray(getattr(data, name))[seen], np.asarray(fit.predicted[name])[seen]
+        sig = np.asarray(getattr(data, f"{name}_sigma"))[seen]
         ax.errorbar(pred, obs, yerr=sig, fmt="o", ms=4, color=colour, ecolor="0.6", lw=1)
         lo, hi = min(obs.min(), pred.min()), max(obs.max(), pred.max())
         ax.plot([lo, hi], [lo, hi], "k--", lw=1)
         ax.set_xlabel(f"predicted {label}")
         ax.set_ylabel(f"observed {label}")
-    axes[2].plot(np.arange(n), r[:n], "o", ms=4, color=OKABE_ITO[0], label="force")
-    axes[2].plot(np.arange(n), r[n : 2 * n], "s", ms=4, color=OKABE_ITO[1], label="moment")
+        axes[2].plot(seen, r[start : start + seen.size], marker, ms=4, color=colour, label=name)
+        start += seen.size
     axes[2].axhline(0, color="k", lw=1)
     axes[2].set_xlabel("data point")
     axes[2].set_ylabel("residual / sigma")
@@ -106,6 +112,39 @@ _AXIAL_LABELS = {
     "extension": "extension $h$",
     "rotation": "end rotation $\\Theta$",
 }
+
+
+def plot_model_comparison(comparison, path=None):
+    """A `ModelComparison` (from `compare_models`): the differences in AIC and BIC from the
+    best model (bars; hatched where the data leave a parameter undetermined, the
+    recommended model outlined) and the reduced chi2 of each fit (1 is the expected value)."""
+    from matplotlib.figure import Figure
+
+    names = list(comparison.names)
+    rows = [comparison.table[n] for n in names]
+    fig = Figure(figsize=(11, 3.8), layout="constrained")
+    axes = fig.subplots(1, 2)
+    x = np.arange(len(names))
+    for offset, key, label, colour in ((-0.2, "delta_aic", "$\\Delta$AIC", OKABE_ITO[0]), (0.2, "delta_bic", "$\\Delta$BIC", OKABE_ITO[1])):
+        values = np.array([r[key] for r in rows], float)
+        bars = axes[0].bar(x + offset, np.maximum(values, 1e-2), 0.4, color=colour, label=label)
+        for bar, row, name in zip(bars, rows, names):
+            if not row["identifiable"]:
+                bar.set_hatch("//")
+            if name == comparison.best:
+                bar.set_edgecolor("k")
+                bar.set_linewidth(1.5)
+    axes[0].set_yscale("log")
+    axes[0].set_ylabel("difference from the best model")
+    axes[0].set_xticks(x, names, rotation=15)
+    axes[0].legend(title="hatched: not all determined")
+    axes[1].bar(x, [r["chi2_reduced"] for r in rows], 0.5, color=OKABE_ITO[2])
+    axes[1].axhline(1.0, color="k", lw=1, ls="--")
+    axes[1].set_yscale("log")
+    axes[1].set_ylabel("reduced $\\chi^2$")
+    axes[1].set_xticks(x, names, rotation=15)
+    fig.suptitle(f"compare_models: recommended {comparison.best} (lowest {comparison.criterion.upper()})")
+    return _finish(fig, path)
 
 
 def plot_response(curve, path=None):

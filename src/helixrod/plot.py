@@ -10,6 +10,7 @@ from ._plot import (
     plot_fit as plot_fit,
     plot_helix as plot_helix,
     plot_hyperboloid as plot_hyperboloid,
+    plot_model_comparison as plot_model_comparison,
     plot_response as plot_response,
     plot_rod_atlas as plot_rod_atlas,
     plot_sensitivity as plot_sensitivity,

@@ -3,6 +3,8 @@ shapes -- data, forward models, parameterisation, the fit pipeline, the error an
 the closed-form linear fit and the bootstrap."""
 
 from ._bootstrap import Bootstrap as Bootstrap, bootstrap as bootstrap
+from ._compare import MODEL_CLASSES as MODEL_CLASSES, ModelComparison as ModelComparison, compare_models as compare_models
+from ._design import ExperimentDesign as ExperimentDesign, design_experiment as design_experiment
 from ._finite_data import (
     EndResponseData as EndResponseData,
     ShapeData as ShapeData,

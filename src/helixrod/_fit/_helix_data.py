@@ -27,7 +27,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._equilibria import helix_equilibria
-from .._misc import is_concrete
+from .._misc import is_concrete, write_atomically
 from .._rod import Rod
 from ._units import ANGLE_UNITS, DIMENSIONLESS_UNITS, FORCE_UNITS, INVERSE_LENGTH_UNITS, TORQUE_UNITS
 
@@ -93,6 +93,8 @@ CSV_COLUMNS = (
     "register_sigma",
 )
 _OPTIONAL = ("kappa_sigma", "tau_sigma", "kappa_tau_correlation", "register", "register_sigma")
+# Cells that may be empty (or 'nan'): the quantity was not measured at that point.
+_MAY_BE_EMPTY = ("force", "moment", "force_sigma", "moment_sigma")
 
 
 class HelixData(eqx.Module):
@@ -100,7 +102,14 @@ class HelixData(eqx.Module):
 
     Fields (each shape `(n,)`, float64): `force` $F$, `moment` $M$, `kappa` $\\kappa > 0$,
     `tau` $\\tau$, and the standard deviations `force_sigma`, `moment_sigma` (a scalar
-    broadcasts to every point).  Optional (`None` when absent): `kappa_sigma`, `tau_sigma`
+    broadcasts to every point).
+
+    Partial observations: `force=None` or `moment=None` when that quantity was not
+    measured at all (e.g. force-only data: the moment is hard to measure), and NaN at the
+    points where it was not measured; `force_observed`, `moment_observed` are the masks.
+    The fit, its error bars, the identifiability report and the bootstrap then use what
+    is observed; a sigma is read only where its quantity is observed (NaN elsewhere is
+    fine).  Every point must observe at least one of the two.  Optional (`None` when absent): `kappa_sigma`, `tau_sigma`
     (errors in the abscissae, used by `fit_stiffness(..., errors_in_variables=True)`) and
     `kappa_tau_correlation` (their correlation coefficient, in $[-1, 1]$; e.g. $\\kappa$ and
     $\\tau$ computed from the same two noisy observables),
@@ -137,8 +146,8 @@ class HelixData(eqx.Module):
 
     def __init__(
         self,
-        force: ArrayLike,
-        moment: ArrayLike,
+        force: ArrayLike | None,
+        moment: ArrayLike | None,
         kappa: ArrayLike,
         tau: ArrayLike,
         force_sigma: ArrayLike = 1.0,
@@ -152,7 +161,13 @@ class HelixData(eqx.Module):
         units: dict | None = None,
         convention: str = "axis",
     ):
-        columns = {"force": force, "moment": moment, "kappa": kappa, "tau": tau}
+        if force is None and moment is None:
+            raise ValueError("HelixData: neither force nor moment is given: there is nothing to fit")
+        absent = np.full(np.size(np.asarray(kappa)), np.nan)  # a quantity not measured at any point
+        columns = {
+            "force": absent if force is None else force, "moment": absent if moment is None else moment,
+            "kappa": kappa, "tau": tau,
+        }
         arrays = {}
         for name, x in columns.items():
             a = np.asarray(x, dtype=float)
@@ -186,9 +201,19 @@ class HelixData(eqx.Module):
             raise ValueError("HelixData: register_sigma given without register")
         if kappa_tau_correlation is not None and (kappa_sigma is None or tau_sigma is None):
             raise ValueError("HelixData: kappa_tau_correlation needs both kappa_sigma and tau_sigma")
+        observed = {name: ~np.isnan(arrays[name]) for name in ("force", "moment")}
+        neither = np.flatnonzero(~observed["force"] & ~observed["moment"])
+        if neither.size:
+            raise ValueError(
+                f"HelixData: rows {neither[:20].tolist()} observe neither force nor moment (NaN in both): "
+                "drop them, they carry no information"
+            )
+        # A quantity and its sigma are read only where the quantity is observed.
+        read = {"force": observed["force"], "moment": observed["moment"],
+                "force_sigma": observed["force"], "moment_sigma": observed["moment"]}
         bad_rows = {}
         for name, a in arrays.items():
-            rows = np.flatnonzero(~np.isfinite(a))
+            rows = np.flatnonzero(read.get(name, True) & ~np.isfinite(a))
             if rows.size:
                 bad_rows[name] = rows.tolist()
         if bad_rows:
@@ -199,8 +224,9 @@ class HelixData(eqx.Module):
                 + f" (columns: {', '.join(f'{k} rows {v[:5]}' for k, v in bad_rows.items())})"
             )
         for name in ("force_sigma", "moment_sigma", "kappa_sigma", "tau_sigma", "register_sigma"):
-            if name in arrays and np.any(arrays[name] <= 0):
-                rows = np.flatnonzero(arrays[name] <= 0)
+            where = read.get(name, True)
+            if name in arrays and np.any(where & ~(arrays[name] > 0)):
+                rows = np.flatnonzero(where & ~(arrays[name] > 0))
                 raise ValueError(f"HelixData: {name} must be > 0; rows {rows[:20].tolist()} are not")
         if "kappa_tau_correlation" in arrays and np.any(np.abs(arrays["kappa_tau_correlation"]) > 1):
             rows = np.flatnonzero(np.abs(arrays["kappa_tau_correlation"]) > 1)
@@ -229,6 +255,22 @@ class HelixData(eqx.Module):
         """Unit strings by column name (as given, or read from a CSV units line)."""
         return dict(self.unit_labels)
 
+    @property
+    def force_observed(self) -> Array:
+        """Mask `(n,)` of the points whose force was measured."""
+        return ~jnp.isnan(self.force)
+
+    @property
+    def moment_observed(self) -> Array:
+        """Mask `(n,)` of the points whose moment was measured."""
+        return ~jnp.isnan(self.moment)
+
+    @property
+    def observed(self) -> tuple[str, ...]:
+        """The quantities measured at one point at least: a subset of `("force", "moment")`."""
+        masks = {"force": self.force_observed, "moment": self.moment_observed}
+        return tuple(name for name, mask in masks.items() if bool(np.any(np.asarray(mask))))
+
     def __len__(self) -> int:
         return int(self.force.shape[0])
 
@@ -245,8 +287,12 @@ class HelixData(eqx.Module):
 
         def span(name):
             values = np.asarray(getattr(self, name))
+            seen = values[~np.isnan(values)]
+            if not seen.size:
+                return f"{name} not observed"
             unit = f" {units[name]}" if name in units else ""
-            return f"{name} {np.nanmin(values):.4g}..{np.nanmax(values):.4g}{unit}" if values.size else f"{name} -"
+            part = "" if seen.size == values.size else f" (at {seen.size} points)"
+            return f"{name} {seen.min():.4g}..{seen.max():.4g}{unit}{part}"
 
         present = [c for c in columns if getattr(self, c) is not None]
         sigmas = [c for c in ("force", "moment", "kappa", "tau", "register") if getattr(self, f"{c}_sigma") is not None]
@@ -266,15 +312,16 @@ class HelixData(eqx.Module):
 
         Format: lines starting with `#` are comments.  The first other line is the header,
         a comma-separated subset of `force, moment, kappa, tau, force_sigma, moment_sigma,
-        kappa_sigma, tau_sigma, kappa_tau_correlation, register, register_sigma` in any order (the first four are
-        required; the sigma columns may instead be given as arguments, which then
-        override).  The next line may be a units line: same columns, unit strings; it is
+        kappa_sigma, tau_sigma, kappa_tau_correlation, register, register_sigma` in any order
+        (`kappa`, `tau` and one of `force`, `moment` are required; the sigma columns may
+        instead be given as arguments, which then override).  An empty (or `nan`) cell of
+        `force` or `moment`, or of its sigma, means not measured at that point.  The next line may be a units line: same columns, unit strings; it is
         recognised by its first cell not being a number.  Physical units (force pN, fN,
         nN, N; moment pN nm, N m, ...; curvature and torsion 1/nm, 1/um, 1/m, ...; register
         rad or deg) are converted to pN, pN nm, 1/nm and rad, so the fitted stiffness is in
         pN nm^2; labels that are not physical units (`K1/L^2, K1/L, 1/L, 1/L` for data in
         the rod's own scales) are kept as given, and mixing the two is an error.  Then one
-        data row per helix; an empty cell in an optional column is not
+        data row per helix; an empty cell in another column is not
         allowed (drop the column instead).  Errors name the file line (counted from 1).
         """
         path = Path(path)
@@ -287,7 +334,9 @@ class HelixData(eqx.Module):
         unknown = [c for c in names if c not in CSV_COLUMNS]
         if unknown:
             raise ValueError(f"{path}:{header_line}: unknown columns {unknown}; allowed: {list(CSV_COLUMNS)}")
-        missing = [c for c in ("force", "moment", "kappa", "tau") if c not in names]
+        missing = [c for c in ("kappa", "tau") if c not in names]
+        if "force" not in names and "moment" not in names:
+            missing.append("force or moment")
         if missing:
             raise ValueError(f"{path}:{header_line}: missing required columns {missing}")
         if len(set(names)) != len(names):
@@ -308,14 +357,21 @@ class HelixData(eqx.Module):
             cells = next(csv.reader([line]))
             if len(cells) != len(names):
                 raise ValueError(f"{path}:{lineno}: {len(cells)} cells, expected {len(names)} ({', '.join(names)})")
+            empty = [n for n, c in zip(names, cells) if not c.strip()]
+            if any(n not in _MAY_BE_EMPTY for n in empty):
+                raise ValueError(
+                    f"{path}:{lineno}: empty cells in {[n for n in empty if n not in _MAY_BE_EMPTY]}; only "
+                    f"{', '.join(_MAY_BE_EMPTY)} may be empty (not measured at that point)"
+                )
             try:
-                values[r] = [float(c) for c in cells]
+                values[r] = [float(c) if c.strip() else np.nan for c in cells]
             except ValueError:
                 raise ValueError(f"{path}:{lineno}: not a number in {cells}") from None
         if units:
             factors, units = _unit_factors(units, f"{path}:{lines[1][0]}")
             values = values * np.array([factors[n] for n in names])
-        bad = ~np.all(np.isfinite(values), axis=1)
+        absent = np.isnan(values) & np.isin(names, _MAY_BE_EMPTY)[None, :]  # 'nan' as written by to_csv
+        bad = ~np.all(np.isfinite(values) | absent, axis=1)
         if bad.any():
             file_lines = [body[r][0] for r in np.flatnonzero(bad)]
             raise ValueError(
@@ -325,11 +381,13 @@ class HelixData(eqx.Module):
         col = {n: values[:, i] for i, n in enumerate(names)}
         fs = force_sigma if force_sigma is not None else col.get("force_sigma")
         ms = moment_sigma if moment_sigma is not None else col.get("moment_sigma")
-        if fs is None or ms is None:
-            raise ValueError(f"{path}: force_sigma and moment_sigma are needed (as columns or arguments)")
+        needed = [f"{n}_sigma" for n, given in (("force", fs), ("moment", ms)) if n in col and given is None]
+        if needed:
+            raise ValueError(f"{path}: {' and '.join(needed)} needed (as columns or arguments)")
+        fs, ms = (1.0 if x is None else x for x in (fs, ms))  # of a quantity not measured: never read
         return cls(
-            col["force"],
-            col["moment"],
+            col.get("force"),
+            col.get("moment"),
             col["kappa"],
             col["tau"],
             fs,
@@ -347,7 +405,8 @@ class HelixData(eqx.Module):
         """Write the data as CSV (header line, units line, one row per helix; values with
         17 significant digits, so a round trip is exact).  Returns the text; writes it to
         `path` when given."""
-        names = [n for n in CSV_COLUMNS if getattr(self, n) is not None]
+        unmeasured = [f"{q}{suffix}" for q in ("force", "moment") if q not in self.observed for suffix in ("", "_sigma")]
+        names = [n for n in CSV_COLUMNS if getattr(self, n) is not None and n not in unmeasured]
         out = io.StringIO()
         out.write("# helixrod HelixData: F = n.a and M = m.a along the helix axis a = u/|u| (docs/conventions.md)\n")
         if comment:
@@ -358,10 +417,10 @@ class HelixData(eqx.Module):
         writer.writerow([self.units.get(n, "-") or "-" for n in names])
         cols = np.stack([np.asarray(getattr(self, n)) for n in names], axis=1)
         for row in cols:
-            writer.writerow([repr(float(v)) for v in row])
+            writer.writerow(["" if np.isnan(v) else repr(float(v)) for v in row])  # empty: not measured
         text = out.getvalue()
         if path is not None:
-            Path(path).write_text(text)
+            write_atomically(path, lambda f: f.write(text), binary=False)
         return text
 
 
@@ -377,6 +436,7 @@ def synthetic_helix_data(
     key: Array,
     *,
     branch: str = "min-energy",
+    observe: tuple[str, ...] = ("force", "moment"),
     units: dict | None = None,
 ) -> HelixData:
     """Simulated measurements of `rod` at the helices `(kappa, tau)` (1-D, broadcast).
@@ -388,8 +448,13 @@ def synthetic_helix_data(
     absolute deviations instead).  The data's sigmas are the noise levels used; `noise = 0`
     gives exact data with sigma = the RMS values (unit relative weights), so fits work
     unchanged.  The registers are stored in `register` (with no `register_sigma`, so a fit
-    ignores them unless asked).  Not jit-able (it returns validated `HelixData`).
+    ignores them unless asked).  `observe`: the quantities measured, `("force", "moment")`
+    (default), `("force",)` or `("moment",)`; the other one is `None` (partial data).  Not
+    jit-able (it returns validated `HelixData`).
     """
+    observe = (observe,) if isinstance(observe, str) else tuple(observe)
+    if not observe or any(q not in ("force", "moment") for q in observe):
+        raise ValueError(f"observe must name 'force' and/or 'moment', got {observe!r}")
     kappa = jnp.asarray(kappa, jnp.result_type(float))
     tau = jnp.asarray(tau, jnp.result_type(float))
     kappa, tau = jnp.broadcast_arrays(jnp.atleast_1d(kappa), jnp.atleast_1d(tau))
@@ -423,4 +488,7 @@ def synthetic_helix_data(
             raise ValueError(f"noise must be >= 0 and finite, got {noise}")
         F_obs = F + sigma_f * np.asarray(jax.random.normal(key_f, F.shape))
         M_obs = M + sigma_m * np.asarray(jax.random.normal(key_m, M.shape))
-    return HelixData(F_obs, M_obs, np.asarray(kappa), np.asarray(tau), sigma_f, sigma_m, register=phi, units=units)
+    return HelixData(
+        F_obs if "force" in observe else None, M_obs if "moment" in observe else None, np.asarray(kappa),
+        np.asarray(tau), sigma_f, sigma_m, register=phi, units=units,
+    )

@@ -67,6 +67,13 @@ class AbstractForwardModel(eqx.Module):
         """The model's own parameters besides the rod's (none by default)."""
         return ()
 
+    def observed_residuals(self) -> np.ndarray | None:
+        """Mask `(m,)` of the residuals that are observations (concrete, from the data), or
+        `None` when all are.  A residual of a quantity not measured at a point is held at
+        zero, so batches of models (bootstrap replicates) keep one shape; the fit leaves
+        it out of its residuals, degrees of freedom and error analysis."""
+        return None
+
     @property
     @abc.abstractmethod
     def frame_observed(self) -> bool:
@@ -119,6 +126,8 @@ class HelixModel(AbstractForwardModel):
     tau: Array
     force_sigma: Array
     moment_sigma: Array
+    force_observed: Array  # masks; an unobserved value is 0 with sigma 1 and its residual 0
+    moment_observed: Array
     observed_register: Array | None  # (`register` would shadow ABCMeta.register)
     register_sigma: Array | None
     kappa_sigma: Array | None
@@ -143,6 +152,8 @@ class HelixModel(AbstractForwardModel):
             rF, rM = self._whitened(rod, errF, errM, sF, sM)
         else:
             rF, rM = errF / sF, errM / sM
+        rF = jnp.where(self.force_observed[:, None], rF, 0.0)
+        rM = jnp.where(self.moment_observed[:, None], rM, 0.0)
         residuals = [rF, rM]
         if self.use_register:
             dphi = jnp.remainder(eq.phi - self.observed_register[:, None] + jnp.pi, 2 * jnp.pi) - jnp.pi
@@ -192,7 +203,8 @@ class HelixModel(AbstractForwardModel):
 
         cFF = sF**2 + propagated(dF_dk, dF_dt, dF_dk, dF_dt)
         cMM = sM**2 + propagated(dM_dk, dM_dt, dM_dk, dM_dt)
-        cFM = propagated(dF_dk, dF_dt, dM_dk, dM_dt)
+        both = (self.force_observed & self.moment_observed)[:, None]  # else the one observed alone
+        cFM = jnp.where(both, propagated(dF_dk, dF_dt, dM_dk, dM_dt), 0.0)
         l11 = jnp.sqrt(cFF)
         l21 = cFM / l11
         l22 = jnp.sqrt(jnp.maximum(cMM - l21 * l21, sM**2 * 1e-12))
@@ -212,16 +224,27 @@ class HelixModel(AbstractForwardModel):
         k, t = np.asarray(self.kappa), np.asarray(self.tau)
         norm = np.hypot(k, t)
         bend = (k - rho) / k
-        sF, sM = np.asarray(self.force_sigma), np.asarray(self.moment_sigma)
+        # An unobserved value has weight zero: its row drops out.
+        sF = np.where(np.asarray(self.force_observed), np.asarray(self.force_sigma), np.inf)
+        sM = np.where(np.asarray(self.moment_observed), np.asarray(self.moment_sigma), np.inf)
         A = np.concatenate([
             np.stack([-norm * t * bend, norm * (t - u3)], 1) / sF[:, None],
             np.stack([k * k * bend / norm, (t - u3) * t / norm], 1) / sM[:, None],
         ])
         b = np.concatenate([np.asarray(self.force) / sF, np.asarray(self.moment) / sM])
-        (B, C), *_ = np.linalg.lstsq(A, b, rcond=None)
+        x, _, rank, _ = np.linalg.lstsq(A, b, rcond=None)
+        if rank < 2:  # partial data (force only, uhat3 = 0: only C - B is seen)
+            x = _positive_on_line(x, np.linalg.svd(A)[2][-1])
+        B, C = x
         # A crude floor: the data may favour a negative value of a poorly seen stiffness.
         floor = max(abs(B), abs(C), 1e-300) * 1e-2
         return max(B, floor), max(C, floor)
+
+    def observed_residuals(self):
+        masks = [np.asarray(self.force_observed), np.asarray(self.moment_observed)]
+        if self.use_register and self.register_sigma is not None:
+            masks.append(np.ones(self.kappa.shape, bool))
+        return None if all(m.all() for m in masks) else np.concatenate(masks)
 
     def twist_scale(self, p0):
         return float(np.median(np.hypot(np.asarray(self.kappa), np.asarray(self.tau))))
@@ -245,11 +268,34 @@ class HelixModel(AbstractForwardModel):
         return eqx.tree_at(lambda m: (m.force, m.moment), batch, (force, moment))
 
 
+def _positive_on_line(x, v):
+    """A point of the line $x + t v$ of equally good solutions with both components
+    positive and of the size of the data's scale $|x|$: the middle of the positive segment
+    where it is bounded, else where the smaller component equals $|x|$."""
+    scale = float(np.linalg.norm(x)) or 1.0
+    if np.all(v == 0):
+        return np.abs(x) + scale
+    lower = [(-xi / vi) for xi, vi in zip(x, v) if vi > 0]  # x_i + t v_i > 0
+    upper = [(-xi / vi) for xi, vi in zip(x, v) if vi < 0]
+    if lower and upper:
+        lo, hi = max(lower), min(upper)
+        if lo < hi:
+            return x + 0.5 * (lo + hi) * v
+        return np.abs(x) + scale
+    v = v if lower else -v  # both components grow with t
+    t = max((scale - xi) / vi for xi, vi in zip(x, v) if vi > 0)
+    return x + t * v
+
+
 @forward_model.register
 def _(data: HelixData, *, branch=None, use_register=None, errors_in_variables=None, **others) -> HelixModel:
     if others:
         raise ValueError(f"fit_stiffness: {next(iter(others))}= does not apply to HelixData")
-    branch = "nearest" if branch is None else branch
+    if branch is None:
+        # With one observable per point, "nearest" would match each point to whichever
+        # register fits it, which can make an undetermined stiffness look determined.
+        complete = bool(np.all(np.asarray(data.force_observed)) and np.all(np.asarray(data.moment_observed)))
+        branch = "nearest" if complete else "stable"
     if branch not in BRANCHES:
         raise ValueError(f"branch must be one of {BRANCHES}, got {branch!r}")
     if use_register is None:
@@ -262,13 +308,16 @@ def _(data: HelixData, *, branch=None, use_register=None, errors_in_variables=No
         raise ValueError("errors_in_variables=True needs kappa_sigma and/or tau_sigma in the data")
     zero = jnp.zeros_like(data.kappa)
     either = lambda x: zero if x is None else x  # noqa: E731
+    fo, mo = data.force_observed, data.moment_observed
     return HelixModel(
-        force=data.force,
-        moment=data.moment,
+        force=jnp.where(fo, data.force, 0.0),
+        moment=jnp.where(mo, data.moment, 0.0),
         kappa=data.kappa,
         tau=data.tau,
-        force_sigma=data.force_sigma,
-        moment_sigma=data.moment_sigma,
+        force_sigma=jnp.where(fo, data.force_sigma, 1.0),
+        moment_sigma=jnp.where(mo, data.moment_sigma, 1.0),
+        force_observed=fo,
+        moment_observed=mo,
         observed_register=data.register if use_register else None,
         register_sigma=data.register_sigma if use_register else None,
         kappa_sigma=either(data.kappa_sigma) if errors_in_variables else None,

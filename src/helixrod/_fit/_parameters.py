@@ -47,6 +47,7 @@ class Parameterisation(eqx.Module):
     it).  Internal coordinates and physical values `q` list the rod's free parameters first."""
 
     free: tuple[str, ...] = eqx.field(static=True)
+    isotropic: bool = eqx.field(static=True)  # K2 = K1 (tied: K2 is neither free nor fixed)
     fixed_names: tuple[str, ...] = eqx.field(static=True)
     fixed_values: Array
     k_scale: Array
@@ -62,9 +63,11 @@ class Parameterisation(eqx.Module):
         u_scale: float,
         extra: tuple[ModelParameter, ...] = (),
         extra_values: Mapping[str, float] | None = None,
+        isotropic: bool = False,
     ):
         dtype = float_dtype()
-        self.free = tuple(n for n in PARAMETER_NAMES if n not in fixed)
+        self.isotropic = bool(isotropic) and "K1" not in fixed
+        self.free = tuple(n for n in PARAMETER_NAMES if n not in fixed and not (self.isotropic and n == "K2"))
         self.fixed_names = tuple(n for n in PARAMETER_NAMES if n in fixed)
         self.fixed_values = jnp.asarray([float(fixed.get(n, 0.0)) for n in PARAMETER_NAMES], dtype)
         self.k_scale = jnp.asarray(k_scale, dtype)
@@ -107,6 +110,8 @@ class Parameterisation(eqx.Module):
         """The physical 8-vector from the free physical values `q` (in `free` order)."""
         fixed = self._fixed_lookup()
         lookup = dict(zip(self.free, [q[i] for i in range(len(self.free))]))
+        if self.isotropic:
+            lookup["K2"] = lookup["K1"]
         dtype = float_dtype()
         return jnp.stack([jnp.asarray(lookup[n] if n in lookup else fixed[n], dtype) for n in PARAMETER_NAMES])
 
@@ -122,7 +127,9 @@ class Parameterisation(eqx.Module):
         ks, us = self.k_scale, self.u_scale
         val = {}
         for n in ("K1", "K2"):
-            val[n] = ks * jnp.exp(jnp.clip(zs[n], -40.0, 40.0)) if n in zs else fixed[n]
+            val[n] = ks * jnp.exp(jnp.clip(zs[n], -40.0, 40.0)) if n in zs else fixed.get(n)
+        if self.isotropic:
+            val["K2"] = val["K1"]
         K1, K2 = val["K1"], val["K2"]
         if "K3" in zs:
             for n in ("K13", "K23"):
@@ -163,6 +170,8 @@ class Parameterisation(eqx.Module):
         p = dict(zip(PARAMETER_NAMES, np.asarray(p_full, float)))
         ks, us = float(self.k_scale), float(self.u_scale)
         z = {}
+        if self.isotropic:
+            p["K2"] = p["K1"]
         for n in ("K1", "K2"):
             z[n] = np.log(p[n] / ks)
         if "K3" in self.free:
@@ -202,9 +211,12 @@ def _disc(w):
     return w / jnp.sqrt(1.0 + jnp.sum(w * w))
 
 
-def resolve_fixed(uhat, fit_uhat: bool, fix, extra: tuple[ModelParameter, ...] = (), init=None) -> dict[str, float]:
+def resolve_fixed(
+    uhat, fit_uhat: bool, fix, extra: tuple[ModelParameter, ...] = (), init=None, isotropic: bool = False
+) -> dict[str, float]:
     """The fixed parameters by name from `uhat=`, `fit_uhat=` and `fix=` (checked), and the
-    model parameters fixed by default (unless `fix` or an `init` mapping names them)."""
+    model parameters fixed by default (unless `fix` or an `init` mapping names them).  With
+    `isotropic` ($K_2 = K_1$), a fixed K1 or K2 fixes both."""
     fixed = {}
     own = {e.name: e for e in extra}
     names = PARAMETER_NAMES + tuple(own)
@@ -228,6 +240,11 @@ def resolve_fixed(uhat, fit_uhat: bool, fix, extra: tuple[ModelParameter, ...] =
             raise ValueError(f"uhat must be three finite numbers, got {uhat!r}")
         for i, n in enumerate(TWIST_NAMES):
             fixed.setdefault(n, float(uh[i]))
+    if isotropic:
+        if "K1" in fixed and "K2" in fixed and fixed["K1"] != fixed["K2"]:
+            raise ValueError(f"isotropic=True (K2 = K1) but fix gives K1 = {fixed['K1']} and K2 = {fixed['K2']}")
+        if "K1" in fixed or "K2" in fixed:
+            fixed["K1"] = fixed["K2"] = fixed.get("K1", fixed.get("K2"))
     for n in ("K1", "K2", "K3"):
         if n in fixed and not fixed[n] > 0:
             raise ValueError(f"fix: {n} must be > 0, got {fixed[n]}")

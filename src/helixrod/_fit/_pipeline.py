@@ -55,8 +55,9 @@ class StiffnessFit(eqx.Module):
     $\\sigma$-normalised residuals (sigma trusted, `absolute_sigma=True`), or that times the
     reduced $\\chi^2$ = `2 cost / (m - p)` when `absolute_sigma=False`; a parameter with
     a share in a null direction of $J$ has `inf`.  `cost` = $\\tfrac12\\sum r^2$ as scipy;
-    `residuals` normalised (helix data: all F residuals, then all M residuals, then
-    registers if fitted).  `predicted`: the model's predictions of the observed quantities
+    `residuals` normalised, of the observations only (helix data: the F residuals of the
+    points with a measured force, then the M residuals of those with a measured moment,
+    then registers if fitted).  `predicted`: the model's predictions of the observed quantities
     by name -- helix data: `force`, `moment`, `register` and `slot` (the register slot of
     `helix_equilibria` used per point); end responses: the two measured responses;
     shapes: `points`; the linear fit: `moment` vectors.  Convergence: `result` (a `RESULTS`
@@ -184,6 +185,10 @@ class StiffnessFit(eqx.Module):
         for w, e in zip(ident.weak, ident.weak_stderr):
             combo = " ".join(f"{c:+.3f}*{n}" for n, c in w)
             lines.append(f"weakly determined: {combo} (scaled stderr {e:.3g})")
+        if ident.weak:  # then say what the data do pin down
+            for w, e in zip(ident.determined, ident.determined_stderr):
+                combo = " ".join(f"{c:+.3f}*{n}" for n, c in w)
+                lines.append(f"determined: {combo} (scaled stderr {e:.3g})")
         lines += [f"symmetry: {x}" for x in ident.symmetries] + [f"note: {x}" for x in ident.notes]
         return "\n".join(lines)
 
@@ -355,7 +360,7 @@ def _physical_values(z, param: Parameterisation):
 
 
 @eqx.filter_jit
-def _jacobian_and_predictions(q, model: AbstractForwardModel, param: Parameterisation):
+def jacobian_and_predictions(q, model: AbstractForwardModel, param: Parameterisation):
     """Jacobian of the normalised residuals with respect to the free physical parameters,
     the residuals and the predictions, in one compiled program."""
 
@@ -388,6 +393,7 @@ def fit_stiffness(
     uhat: ArrayLike | None = None,
     fit_uhat: bool = False,
     fix: Mapping[str, float] | None = None,
+    isotropic: bool = False,
     init: Rod | Mapping[str, float] | None = None,
     solver="levenberg-marquardt",
     n_starts: int | None = None,
@@ -421,6 +427,9 @@ def fit_stiffness(
     - `uhat`: the intrinsic twist, held fixed (default (0, 0, 0)); or `fit_uhat=True`.
     - `fix`: mapping name -> value of parameters held fixed (names as in `PARAMETER_NAMES`), e.g.
       `{"K13": 0, "K23": 0}` for the uncoupled model, `{"K2": ..}`.
+    - `isotropic`: bending isotropic, $K_2 = K_1$: one free parameter `"K1"` for both
+      (`params` has no `"K2"`; the fitted rod has it).  The model classes of
+      `compare_models` are `isotropic` and `fix` patterns.
     - `init`: a `Rod` or mapping for the first start; default: an isotropic rod that fits
       the data by linear least squares (helices: Love's formulas).  Starts 2..`n_starts`
       (default 32 for helices, 1 for finite rods) are random perturbations of it
@@ -437,10 +446,13 @@ def fit_stiffness(
     - `absolute_sigma`: True (default) trusts the sigmas; False scales the covariance by
       the reduced $\\chi^2$ (use when the sigmas are only relative weights).
     - Helix data only: `branch` -- which register a point is matched to: `"nearest"`
-      (default; the register whose (F, M) is closest to the observation in sigma units),
+      (the register whose (F, M) is closest to the observation in sigma units),
       `"stable"` (the nearest stable one), `"min-energy"` (slot 0, the global energy
-      minimum on the circle); `use_register` -- match the observed registers
-      (`data.register`): the branch becomes the register nearest in angle, and, if
+      minimum on the circle); default `"nearest"` when every point has both force and
+      moment, else `"stable"` (with one observable the nearest register can be any that
+      fits it, and an undetermined stiffness looks determined); `use_register` -- match
+      the observed registers (`data.register`): the branch becomes the register nearest in
+      angle, and, if
       `data.register_sigma` is given, the angle is a residual too (default: on when the
       data carry `register_sigma`); `errors_in_variables` -- propagate `data.kappa_sigma`,
       `tau_sigma` (and `kappa_tau_correlation`) to first order into an effective 2x2
@@ -479,12 +491,14 @@ def fit_stiffness(
     if batching not in BATCHING:
         raise ValueError(f"batching must be 'map' or 'vmap', got {batching!r}")
     extra = model.parameters
-    fixed = resolve_fixed(uhat, fit_uhat, fix, extra, init)
+    fixed = resolve_fixed(uhat, fit_uhat, fix, extra, init, isotropic)
     u_fixed = [fixed.get(f"uhat{i}", 0.0) for i in (1, 2, 3)]
     B, C = model.isotropic_start(u_fixed)
     p0 = start_vector(init, fixed, np.array([B, B, C, 0.0, 0.0, *u_fixed]), [e.name for e in extra])
     extra0 = extra_start(init, fixed, extra)
-    param = Parameterisation(fixed, float(np.sqrt(p0[0] * p0[1])), model.twist_scale(p0), extra, extra0)
+    if isotropic:
+        p0[1] = p0[0]  # an init's K2 gives way to the tie
+    param = Parameterisation(fixed, float(np.sqrt(p0[0] * p0[1])), model.twist_scale(p0), extra, extra0, isotropic)
     key = jax.random.key(0) if key is None else key
     z0s = param.starts(param.internal(p0), int(n_starts), key)
     z, cost, results, steps = _multistart(jnp.asarray(z0s), model, param, solver, int(max_steps), batching)
@@ -504,7 +518,10 @@ def fit_stiffness(
         and np.max(np.abs(closest_in_orbit(p_all[i], p_best, param, frame_observed) - p_best) / scale) <= 1e-4
     )
     q = np.concatenate([[p_best[PARAMETER_NAMES.index(n)] for n in param.free], q_all[best, len(param.free):]])
-    J, (r, predicted) = _jacobian_and_predictions(jnp.asarray(q), model, param)
+    J, (r, predicted) = jacobian_and_predictions(jnp.asarray(q), model, param)
+    observed = model.observed_residuals()
+    if observed is not None:
+        J, r = J[observed], r[observed]
     analysis = error_analysis(
         J, r, dict(zip(param.names, q)), param.scales(param.names), absolute_sigma=absolute_sigma,
         weak_threshold=weak_threshold, symmetries=[text for text, _ in symmetries(param, frame_observed)],

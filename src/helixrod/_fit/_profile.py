@@ -42,12 +42,12 @@ class ProfileLikelihood(eqx.Module):
 
 
 @eqx.filter_jit
-def _profile_refits(values, z0, model, param, solver, max_steps: int, index: int, in_extra: bool):
+def _profile_refits(values, z0, model, param, solver, max_steps: int, indices: tuple[int, ...], in_extra: bool):
     def one(value):
         if in_extra:
-            held = eqx.tree_at(lambda p: p.extra_values, param, param.extra_values.at[index].set(value))
+            held = eqx.tree_at(lambda p: p.extra_values, param, param.extra_values.at[jnp.asarray(indices)].set(value))
         else:
-            held = eqx.tree_at(lambda p: p.fixed_values, param, param.fixed_values.at[index].set(value))
+            held = eqx.tree_at(lambda p: p.fixed_values, param, param.fixed_values.at[jnp.asarray(indices)].set(value))
         z, result, _ = minimise(z0, model, held, solver, max_steps)
         return cost_at(z, model, held), result
 
@@ -88,13 +88,18 @@ def profile_likelihood(
     fixed = dict(param.fixed)
     fixed.update({e.name: float(v) for e, v in zip(param.extra, np.asarray(param.extra_values)) if e.name not in param.extra_free})
     fixed[name] = best
+    if param.isotropic and name == "K1":  # the tie K2 = K1 holds K2 with it
+        fixed["K2"] = best
     held = Parameterisation(fixed, float(param.k_scale), float(param.u_scale), param.extra, dict(fixed, **{n: float(fit.params[n]) for n in param.extra_free if n != name}))
     p_fit = np.asarray(rod_vector(fit.rod))
     extra_fit = np.asarray(param.extra_vector(jnp.asarray([float(fit.params[n]) for n in param.names])))
     z0 = jnp.asarray(held.internal(p_fit, extra_fit))
     in_extra = name not in PARAMETER_NAMES
-    index = [e.name for e in param.extra].index(name) if in_extra else PARAMETER_NAMES.index(name)
-    cost, result = _profile_refits(jnp.asarray(values), z0, problem.model, held, problem.solver, problem.max_steps, index, in_extra)
+    if in_extra:
+        indices = ([e.name for e in param.extra].index(name),)
+    else:
+        indices = (0, 1) if param.isotropic and name == "K1" else (PARAMETER_NAMES.index(name),)
+    cost, result = _profile_refits(jnp.asarray(values), z0, problem.model, held, problem.solver, problem.max_steps, indices, in_extra)
     ok = np.asarray(result == RESULTS.successful) & np.isfinite(np.asarray(cost))
     delta = np.where(ok, 2 * (np.asarray(cost) - float(fit.cost)), np.nan)
     threshold = NormalDist().inv_cdf(0.5 + level / 2) ** 2  # chi^2 with one degree of freedom

@@ -23,7 +23,10 @@ class Identifiability(eqx.Module):
     the ratio of the largest finite one to the smallest;
     `weak`: the right singular vectors whose scaled standard error $1/s_k$ exceeds
     `weak_threshold`, each as a mapping name -> coefficient (entries below 0.05 dropped) with
-    its scaled standard error in `weak_stderr` (`inf` for an exact null direction); `rank`
+    its scaled standard error in `weak_stderr` (`inf` for an exact null direction);
+    `determined` and `determined_stderr` the others, in the same form: what partial data
+    pin down when single parameters are not (e.g. force-only helix data of an uncoupled
+    rod determine $K_3 - K_1$ alone); `rank`
     the numerical rank; `symmetries` the exact frame symmetries that apply (identical
     predictions), and `notes` on near-symmetries and on residuals left out of or
     constraining the error analysis."""
@@ -38,6 +41,8 @@ class Identifiability(eqx.Module):
     weak_threshold: float = eqx.field(static=True)
     symmetries: tuple[str, ...] = eqx.field(static=True)
     notes: tuple[str, ...] = eqx.field(static=True)
+    determined: tuple = eqx.field(static=True, default=())
+    determined_stderr: tuple = eqx.field(static=True, default=())
 
     def to_dict(self) -> dict:
         """Plain-Python form (JSON-serialisable)."""
@@ -51,6 +56,8 @@ class Identifiability(eqx.Module):
             "weak_threshold": float(self.weak_threshold),
             "symmetries": list(self.symmetries),
             "notes": list(self.notes),
+            "determined": [dict(w) for w in self.determined],
+            "determined_stderr": list(self.determined_stderr),
         }
 
     @classmethod
@@ -67,6 +74,8 @@ class Identifiability(eqx.Module):
             weak_threshold=float(d.get("weak_threshold", weak_threshold)),
             symmetries=tuple(d["symmetries"]),
             notes=tuple(d["notes"]),
+            determined=tuple(tuple(w.items()) for w in d.get("determined", [])),
+            determined_stderr=tuple(float(e) for e in d.get("determined_stderr", [])),
         )
 
 
@@ -161,15 +170,15 @@ def error_analysis(
         corr = cov / np.outer(d, d)
     corr[undetermined, :] = np.nan
     corr[:, undetermined] = np.nan
-    weak, weak_err = [], []
+    weak, weak_err, determined, determined_err = [], [], [], []
     for k in range(s.size):
         err = np.inf if null[k] else 1.0 / s[k]
         if not absolute_sigma and np.isfinite(err):
             err *= np.sqrt(chi2_reduced)
-        if err > weak_threshold:
-            v = Vt[k] * np.sign(Vt[k][np.argmax(np.abs(Vt[k]))])
-            weak.append(tuple((names[i], round(float(v[i]), 4)) for i in range(p) if abs(v[i]) >= 0.05))
-            weak_err.append(float(err))
+        v = Vt[k] * np.sign(Vt[k][np.argmax(np.abs(Vt[k]))])
+        combination = tuple((names[i], round(float(v[i]), 4)) for i in range(p) if abs(v[i]) >= 0.05)
+        (weak if err > weak_threshold else determined).append(combination)
+        (weak_err if err > weak_threshold else determined_err).append(float(err))
     qd = dict(zip(names, q))
     if "K1" in qd and "K2" in qd:
         i1, i2 = names.index("K1"), names.index("K2")
@@ -191,6 +200,8 @@ def error_analysis(
         weak_threshold=weak_threshold,
         symmetries=tuple(symmetries),
         notes=tuple(notes),
+        determined=tuple(determined),
+        determined_stderr=tuple(determined_err),
     )
     return ErrorAnalysis(
         covariance=jnp.asarray(cov),

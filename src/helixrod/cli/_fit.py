@@ -2,17 +2,19 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import jax
 import typer
 from rich.console import Console
 
-from .. import HelixData, fit_stiffness
-from ..plot import plot_fit
+from .. import MODEL_CLASSES, HelixData, compare_models, fit_stiffness
+from .._misc import write_atomically
+from ..plot import plot_fit, plot_model_comparison
 from ._numbers import assignments, numbers
 from ._paths import input_file, output_file
-from ._report import print_fit
+from ._report import print_comparison, print_fit
 
 
 def example_data_path() -> Path:
@@ -25,7 +27,10 @@ def fit(
     uhat: str = typer.Option(None, help="fixed intrinsic twist 'u1,u2,u3' (default 0,0,0)"),
     fit_uhat: bool = typer.Option(False, "--fit-uhat", help="fit the intrinsic twist too"),
     fix: list[str] = typer.Option([], help="hold a parameter fixed, e.g. --fix K13=0 (repeatable)"),
-    branch: str = typer.Option("nearest", help="register rule: nearest, stable or min-energy"),
+    branch: str = typer.Option(
+        None, help="register rule: nearest, stable or min-energy (default: nearest when every point has F and M, else stable; "
+        "stable with --compare)",
+    ),
     method: str = typer.Option("levenberg-marquardt", help="levenberg-marquardt, gauss-newton, lbfgs, adam"),
     n_starts: int = typer.Option(32, help="number of (vmapped) starts"),
     seed: int = typer.Option(0, help="seed of the random starts"),
@@ -34,8 +39,14 @@ def fit(
         None, "--errors-in-variables/--no-errors-in-variables",
         help="propagate the kappa, tau sigmas of the data into the force and moment residuals (default: on when the data carry them)",
     ),
-    out: Path = typer.Option(None, help="write the fit as JSON"),
-    plot: Path = typer.Option(None, help="write observed vs predicted F and M as PNG"),
+    compare: bool = typer.Option(
+        False, "--compare", help="fit the model classes of --models side by side (AIC, BIC, likelihood-ratio tests)"
+    ),
+    models: str = typer.Option(
+        ",".join(MODEL_CLASSES), help=f"with --compare: comma-separated classes among {', '.join(MODEL_CLASSES)}"
+    ),
+    out: Path = typer.Option(None, help="write the fit (or the comparison) as JSON"),
+    plot: Path = typer.Option(None, help="write observed vs predicted F and M (or the comparison) as PNG"),
 ) -> None:
     """Fit K1, K2, K3, K13, K23 (and uhat) to measured helices (the inverse spring problem)."""
     console = Console()
@@ -43,24 +54,36 @@ def fit(
     input_file(data, "DATA")
     output_file(out, "--out")
     output_file(plot, "--plot", figure=True)
+    classes = [m.strip() for m in models.split(",") if m.strip()]
+    options = dict(
+        uhat=None if uhat is None else numbers(uhat, "--uhat", 3),
+        fit_uhat=fit_uhat,
+        fix=fixed or None,
+        solver=method,
+        n_starts=n_starts,
+        key=jax.random.key(seed),
+        absolute_sigma=not relative_sigma,
+        errors_in_variables=errors_in_variables,
+    )
+    if branch is not None:
+        options["branch"] = branch
     try:
         observations = HelixData.from_csv(data)
-        result = fit_stiffness(
-            observations,
-            uhat=None if uhat is None else numbers(uhat, "--uhat", 3),
-            fit_uhat=fit_uhat,
-            fix=fixed or None,
-            branch=branch,
-            solver=method,
-            n_starts=n_starts,
-            key=jax.random.key(seed),
-            absolute_sigma=not relative_sigma,
-            errors_in_variables=errors_in_variables,
-        )
+        result = compare_models(observations, classes, **options) if compare else fit_stiffness(observations, **options)
     except ValueError as error:
         console.print(f"[red]error:[/red] {error}")
         raise typer.Exit(code=2) from None
-    console.print(f"{len(observations)} helices from {data}")
+    console.print(f"{len(observations)} helices from {data} (observed: {', '.join(observations.observed)})")
+    if compare:
+        print_comparison(console, result)
+        if out is not None:
+            text = json.dumps(result.to_dict(), indent=1)
+            write_atomically(out, lambda f: f.write(text), binary=False)
+            console.print(f"wrote {out}")
+        if plot is not None:
+            plot_model_comparison(result, plot)
+            console.print(f"wrote {plot}")
+        return
     print_fit(console, result)
     if out is not None:
         result.save(out)

@@ -54,9 +54,41 @@ def print_fit(console, fit) -> None:
         for w, e in zip(ident.weak, ident.weak_stderr):
             combo = " ".join(f"{c:+.3f}*{n}" for n, c in w)
             console.print(f"weakly determined: {combo}  (scaled stderr {e:.3g})")
+        for w, e in zip(ident.determined, ident.determined_stderr):
+            combo = " ".join(f"{c:+.3f}*{n}" for n, c in w)
+            console.print(f"determined: {combo}  (scaled stderr {e:.3g})")
     else:
         console.print(f"every parameter combination determined to better than {ident.weak_threshold:.0%} (scaled)")
     for s in ident.symmetries:
         console.print(f"symmetry (identical predictions): {s}")
     for note in ident.notes:
         console.print(f"note: {note}")
+
+
+def print_comparison(console, comparison) -> None:
+    """Rich tables of a `ModelComparison`: the models side by side, the likelihood-ratio
+    tests of nested pairs, and the recommendation."""
+    table = Table(title=f"compare_models: {len(comparison.names)} models, recommended by {comparison.criterion.upper()}")
+    for col in ("model", "k", "cost", "chi2/nu", "dAIC", "dBIC", "weight", "determined"):
+        table.add_column(col, justify="right")
+    for name in comparison.names:
+        row = comparison.table[name]
+        flag = "yes" if row["identifiable"] else f"rank {row['rank']}"
+        flag += "" if row["ok"] else " (not converged)"
+        mark = "*" if name == comparison.best else ""
+        table.add_row(
+            f"{mark}{name}", str(row["n_params"]), f"{row['cost']:.5g}", f"{row['chi2_reduced']:.3g}",
+            f"{row['delta_aic']:.3g}", f"{row['delta_bic']:.3g}", f"{row['akaike_weight']:.3f}", flag,
+        )
+    console.print(table)
+    if comparison.tests:
+        tests = Table(title="likelihood-ratio tests (chi2 reference; see ModelComparison.simulate_test)")
+        for col in ("smaller", "larger", "statistic", "df", "p"):
+            tests.add_column(col, justify="right")
+        for t in comparison.tests:
+            tests.add_row(t["smaller"], t["larger"], f"{t['statistic']:.4g}", str(t["df"]), f"{t['p_value']:.3g}")
+        console.print(tests)
+    console.print(f"recommended: {comparison.best} ({comparison.reason})")
+    best = comparison.fits[comparison.best]
+    for name in best.names:
+        console.print(f"  {name} = {float(best.params[name]):.6g} +- {float(best.stderr[name]):.3g}")

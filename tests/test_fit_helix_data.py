@@ -78,3 +78,13 @@ def test_csv_units_are_converted_or_kept_as_labels(tmp_path):
     grads.write_text(header + "N,N m,1/m,1/m,N,N m,grad\n" + rows)
     with pytest.raises(ValueError, match="unknown unit 'grad' for column register"):
         hr.HelixData.from_csv(grads)
+
+
+def test_csv_extra_columns_are_ignored_with_a_warning_or_strict_errors(tmp_path):
+    path = tmp_path / "extra.csv"
+    path.write_text("force,moment,kappa,tau,temperature,force_sigma,moment_sigma\n1,2,1,0.5,298,0.1,0.1\n")
+    with pytest.warns(UserWarning, match=r"extra.csv:1: ignoring columns \['temperature'\]"):
+        data = hr.HelixData.from_csv(path)
+    np.testing.assert_array_equal(data.force_sigma, [0.1])
+    with pytest.raises(ValueError, match=r"extra.csv:1: unknown columns \['temperature'\]"):
+        hr.HelixData.from_csv(path, strict=True)

@@ -343,7 +343,17 @@ def test_csv_errors_name_the_line(tmp_path, text, match):
     path = tmp_path / "data.csv"
     path.write_text(text, encoding="utf-8")
     with pytest.raises(ValueError, match=match):
-        TweezerData.from_csv(path)
+        TweezerData.from_csv(path, strict=True)  # strict: an unknown column is an error
+
+
+def test_csv_unknown_columns_are_ignored_with_a_warning(tmp_path):
+    path = _write(tmp_path, "force,extension,bead,turns,extension_sigma,n_bp\npN,nm,-,turns,nm,bp\n1,2,b7,3,4,5\n")
+    with pytest.warns(UserWarning, match=r"data\.csv:1: ignoring columns \['bead'\]"):
+        data = TweezerData.from_csv(path)
+    np.testing.assert_allclose(np.asarray(data.turns), [3.0])
+    bad = _write(tmp_path, "force,extension,bead,turns,extension_sigma,n_bp\npN,nm,-,turns,nm,bp\n1,2,3,4,5\n")
+    with pytest.warns(UserWarning), pytest.raises(ValueError, match=r"data\.csv:3: 5 cells, expected 6"):
+        TweezerData.from_csv(bad)
 
 
 def test_csv_empty_molecule_id(tmp_path):

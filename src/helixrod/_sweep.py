@@ -13,6 +13,7 @@ import collections.abc
 import functools
 import json
 import sys
+import zipfile
 from collections.abc import Callable, Mapping, Sequence
 
 import jax
@@ -351,14 +352,32 @@ def load_sweep(path) -> SweepResult:
     """Read a file written by `save_sweep` and return the `SweepResult` (fields, grid axes and
     rod as saved).  Raises `ValueError` for a file that is not a helixrod sweep; never
     unpickles."""
-    with np.load(path, allow_pickle=False) as data:
-        meta = json.loads(str(data["meta"]))
-        if meta.get("format") != "helixrod.sweep":
-            raise ValueError(f"load_sweep: {path} is not a helixrod sweep file")
-        p = data["rod"]
+    not_a_sweep = f"load_sweep: {path} is not a helixrod sweep file (written by save_sweep or helixrod sweep --out)"
+    try:
+        archive = np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise
+    except ValueError:  # numpy's reading of any other file: "contains pickled data"
+        raise ValueError(f"{not_a_sweep}: not a NumPy .npz archive") from None
+    except (OSError, EOFError, zipfile.BadZipFile) as error:  # truncated, unreadable
+        raise ValueError(f"{not_a_sweep}: {error}") from None
+    if not isinstance(archive, np.lib.npyio.NpzFile):
+        raise ValueError(f"{not_a_sweep}: a single array, not an archive")
+    with archive as data:
+        try:
+            meta = json.loads(str(data["meta"]))
+        except (KeyError, ValueError, json.JSONDecodeError):
+            raise ValueError(f"{not_a_sweep}: no readable 'meta' entry") from None
+        if not isinstance(meta, dict) or meta.get("format") != "helixrod.sweep":
+            raise ValueError(not_a_sweep)
+        try:
+            p = data["rod"]
+            arrays = {name: data[f"field/{name}"] for name in meta["fields"]}
+            kappa, tau = data["kappa"], data["tau"]
+        except (KeyError, ValueError, EOFError, zipfile.BadZipFile) as error:
+            raise ValueError(f"load_sweep: {path} is damaged ({error})") from None
         rod = rod_from_vector(p, checked=True)
-        arrays = {name: data[f"field/{name}"] for name in meta["fields"]}
-        return SweepResult(rod, data["kappa"], data["tau"], arrays)
+        return SweepResult(rod, kappa, tau, arrays)
 
 
 # -- sensitivities ------------------------------------------------------------------------

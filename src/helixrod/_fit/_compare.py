@@ -29,8 +29,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.scipy.stats import chi2
 from jaxtyping import Array
-from scipy import stats
 
 from .._rod import rod_vector
 from .._status import RESULTS
@@ -280,7 +280,7 @@ def compare_models(
             statistic = max(2.0 * (fits[large].log_likelihood - fits[small].log_likelihood), 0.0)
             tests.append({
                 "smaller": small, "larger": large, "statistic": float(statistic), "df": int(df),
-                "p_value": float(stats.chi2.sf(statistic, df)),
+                "p_value": float(chi2.sf(statistic, df)),
             })
     candidates = [n for n in names if table[n]["ok"] and table[n]["identifiable"]]
     if candidates:

@@ -29,6 +29,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .._equilibria import helix_equilibria
 from .._misc import is_concrete, write_atomically
 from .._rod import Rod
+from ._csv import drop_unknown_columns
 from ._units import ANGLE_UNITS, DIMENSIONLESS_UNITS, FORCE_UNITS, INVERSE_LENGTH_UNITS, TORQUE_UNITS
 
 # The unit tables of each column's physical units (sigmas share their column's).
@@ -307,6 +308,7 @@ class HelixData(eqx.Module):
         force_sigma: ArrayLike | None = None,
         moment_sigma: ArrayLike | None = None,
         convention: str = "axis",
+        strict: bool = False,
     ) -> "HelixData":
         """Read data written by `to_csv` (or by hand).
 
@@ -322,18 +324,17 @@ class HelixData(eqx.Module):
         pN nm^2; labels that are not physical units (`K1/L^2, K1/L, 1/L, 1/L` for data in
         the rod's own scales) are kept as given, and mixing the two is an error.  Then one
         data row per helix; an empty cell in another column is not
-        allowed (drop the column instead).  Errors name the file line (counted from 1).
+        allowed (drop the column instead).  Columns of other names are ignored with a
+        warning (`strict=True`: an error).  Errors name the file line (counted from 1).
         """
         path = Path(path)
         text = path.read_text(encoding="utf-8-sig")  # a byte-order mark (Excel's "CSV UTF-8") is dropped
         lines = [(i + 1, line) for i, line in enumerate(text.splitlines()) if line.strip() and not line.lstrip().startswith("#")]
         if not lines:
             raise ValueError(f"{path}: no header line")
+        lines = drop_unknown_columns(path, lines, CSV_COLUMNS, strict=strict)
         header_line, header = lines[0]
         names = [c.strip() for c in next(csv.reader([header]))]
-        unknown = [c for c in names if c not in CSV_COLUMNS]
-        if unknown:
-            raise ValueError(f"{path}:{header_line}: unknown columns {unknown}; allowed: {list(CSV_COLUMNS)}")
         missing = [c for c in ("kappa", "tau") if c not in names]
         if "force" not in names and "moment" not in names:
             missing.append("force or moment")

@@ -23,6 +23,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._dna import ROOM_TEMPERATURE
 from .._misc import column, finite_scalar, float_dtype, is_concrete
+from ._csv import drop_unknown_columns
 from ._units import FORCE_UNITS, LENGTH_UNITS, TORQUE_UNITS
 
 #: Column order of the CSV form (`force`, `extension` and one of `turns`/`torque` are required).
@@ -507,6 +508,7 @@ class TweezerData(eqx.Module):
         n_bp=None,
         temperature: ArrayLike | None = None,
         extension_sigma: ArrayLike | None = None,
+        strict: bool = False,
     ) -> TweezerData:
         """Read the CSV form (see the class docstring; `to_csv` writes it).
 
@@ -523,7 +525,8 @@ class TweezerData(eqx.Module):
         `measured_torque_sigma` means no value; other numeric cells must be finite numbers;
         `molecule` cells are ids (strings; default: one molecule `"0"`).  The temperature is
         the argument, else a `# temperature: ... K` (or `C`, `degC`) comment, else 298.15 K.
-        Errors name the file and line (counted from 1).
+        Columns of other names are ignored with a warning (`strict=True`: an error).  Errors
+        name the file and line (counted from 1).
         """
         path = Path(path)
         rows = []
@@ -545,11 +548,9 @@ class TweezerData(eqx.Module):
             rows.append((lineno, line))
         if not rows:
             raise ValueError(f"{path}: no header line")
+        rows = drop_unknown_columns(path, rows, CSV_COLUMNS, strict=strict)
         header_line = rows[0][0]
         names = [c.strip() for c in next(csv.reader([rows[0][1]]))]
-        unknown = [c for c in names if c not in CSV_COLUMNS]
-        if unknown:
-            raise ValueError(f"{path}:{header_line}: unknown columns {unknown}; allowed: {list(CSV_COLUMNS)}")
         if len(set(names)) != len(names):
             raise ValueError(f"{path}:{header_line}: repeated column names {names}")
         missing = [c for c in ("force", "extension") if c not in names]

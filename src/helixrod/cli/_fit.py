@@ -13,7 +13,7 @@ from .. import MODEL_CLASSES, HelixData, compare_models, fit_stiffness
 from .._misc import write_atomically
 from ..plot import plot_fit, plot_model_comparison
 from ._numbers import assignments, numbers
-from ._paths import input_file, output_file
+from ._paths import input_file, output_file, read_with_notes
 from ._report import print_comparison, print_fit
 
 
@@ -45,6 +45,7 @@ def fit(
     models: str = typer.Option(
         ",".join(MODEL_CLASSES), help=f"with --compare: comma-separated classes among {', '.join(MODEL_CLASSES)}"
     ),
+    strict: bool = typer.Option(False, "--strict", help="an unknown CSV column is an error (default: ignored with a note)"),
     out: Path = typer.Option(None, help="write the fit (or the comparison) as JSON"),
     plot: Path = typer.Option(None, help="write observed vs predicted F and M (or the comparison) as PNG"),
 ) -> None:
@@ -68,7 +69,7 @@ def fit(
     if branch is not None:
         options["branch"] = branch
     try:
-        observations = HelixData.from_csv(data)
+        observations = read_with_notes(console, lambda: HelixData.from_csv(data, strict=strict))
         result = compare_models(observations, classes, **options) if compare else fit_stiffness(observations, **options)
     except ValueError as error:
         console.print(f"[red]error:[/red] {error}")

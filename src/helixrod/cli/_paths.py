@@ -1,12 +1,14 @@
 """The command line's files: inputs that must exist and outputs checked before any
 computation (their folder exists, a figure's suffix is one matplotlib writes), so that a
 long run never ends in an error that loses its result.  Every problem is a usage error
-(`typer.BadParameter`: one message, exit code 2, no traceback)."""
+(`typer.BadParameter`: one message, exit code 2, no traceback).  A reader's warnings are
+printed as notes (`read_with_notes`)."""
 
 from __future__ import annotations
 
 import functools
 import os
+import warnings
 from pathlib import Path
 
 import typer
@@ -60,3 +62,14 @@ def output_folder(path: Path, option: str) -> Path:
     if not os.access(path, os.W_OK):
         raise typer.BadParameter(f"{option}: cannot write in {path}")
     return path
+
+
+def read_with_notes(console, read):
+    """`read()` (a data file's reader) with its warnings -- columns ignored, say -- printed
+    on `console` as notes instead of Python's warning lines."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", UserWarning)
+        result = read()
+    for warning in caught:
+        console.print(f"[yellow]note:[/yellow] {warning.message}", soft_wrap=True)
+    return result

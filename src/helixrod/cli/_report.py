@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from rich import box
 from rich.table import Table
 
 
@@ -68,21 +69,24 @@ def print_fit(console, fit) -> None:
 def print_comparison(console, comparison) -> None:
     """Rich tables of a `ModelComparison`: the models side by side, the likelihood-ratio
     tests of nested pairs, and the recommendation."""
-    table = Table(title=f"compare_models: {len(comparison.names)} models, recommended by {comparison.criterion.upper()}")
-    for col in ("model", "k", "cost", "chi2/nu", "dAIC", "dBIC", "weight", "determined"):
+    # A light box: the table fits 80 columns with the longest class name unbroken.
+    table = Table(title=f"compare_models: {len(comparison.names)} models, recommended by {comparison.criterion.upper()}",
+                  box=box.SIMPLE_HEAD)
+    table.add_column("model", justify="left", no_wrap=True)
+    for col in ("k", "cost", "chi2/nu", "dAIC", "dBIC", "rank"):  # Akaike weights: in --out
         table.add_column(col, justify="right")
     for name in comparison.names:
         row = comparison.table[name]
-        flag = "yes" if row["identifiable"] else f"rank {row['rank']}"
-        flag += "" if row["ok"] else " (not converged)"
+        flag = f"{row['rank']}/{row['n_params']}" + ("" if row["identifiable"] else "!") + ("" if row["ok"] else " nc")
         mark = "*" if name == comparison.best else ""
         table.add_row(
-            f"{mark}{name}", str(row["n_params"]), f"{row['cost']:.5g}", f"{row['chi2_reduced']:.3g}",
-            f"{row['delta_aic']:.3g}", f"{row['delta_bic']:.3g}", f"{row['akaike_weight']:.3f}", flag,
+            f"{mark}{name}", str(row["n_params"]), f"{row['cost']:.3g}", f"{row['chi2_reduced']:.3g}",
+            f"{row['delta_aic']:.3g}", f"{row['delta_bic']:.3g}", flag,
         )
     console.print(table)
+    console.print("rank: ! = a parameter undetermined, nc = not converged; * = recommended")
     if comparison.tests:
-        tests = Table(title="likelihood-ratio tests (chi2 reference; see ModelComparison.simulate_test)")
+        tests = Table(title="likelihood-ratio tests (chi2 reference; see ModelComparison.simulate_test)", box=box.SIMPLE_HEAD)
         for col in ("smaller", "larger", "statistic", "df", "p"):
             tests.add_column(col, justify="right")
         for t in comparison.tests:

@@ -16,7 +16,7 @@ from rich.table import Table
 from .. import dna, fit_stiffness, profile_likelihood
 from ..plot import plot_tweezer_fit
 from ._numbers import assignments
-from ._paths import input_file, output_file
+from ._paths import input_file, output_file, read_with_notes
 from ._report import chi2_warning
 
 _UNITS = {"K": "pN nm^2", "uhat": "1/nm", "persistence_length": "nm", "plectoneme_twist_persistence": "nm", "offset_": "nm"}
@@ -144,6 +144,7 @@ def tweezer_fit_command(
     ),
     plot: Path = typer.Option(None, help="write the figure (plot.plot_tweezer_fit; PNG/PDF/SVG by suffix)"),
     out: Path = typer.Option(None, help="write the fit as JSON"),
+    strict: bool = typer.Option(False, "--strict", help="an unknown CSV column is an error (default: ignored with a note)"),
 ) -> None:
     """Fit the rod's stiffness (K2, K3, K23 by default), the bending persistence and the
     plectoneme twist persistence (and bead offsets) to tweezer curves: force-extension
@@ -167,7 +168,7 @@ def tweezer_fit_command(
     except typer.BadParameter as error:
         _fail(console, error.message)
     try:
-        observations = dna.TweezerData.from_csv(data, n_bp=n_bp)
+        observations = read_with_notes(console, lambda: dna.TweezerData.from_csv(data, n_bp=n_bp, strict=strict))
     except (OSError, UnicodeDecodeError) as error:
         _fail(console, f"cannot read {data}: {error}")
     except ValueError as error:

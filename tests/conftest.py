@@ -9,12 +9,15 @@ import pytest
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
-# The CLI tests run commands in this process, and a command turns on the persistent
-# compilation cache (the CLI's default) for the rest of the process.  Keep that cache per
-# test process and run, not the user's ~/.cache/helixrod: a CI worker aborted (a fatal
-# error inside jax's compilation_cache.get_executable_and_time) reading back an executable
-# that another checkout's test run had cached there; with a fresh directory nothing foreign
-# is read.
+# The CLI tests run commands in this process, and a command would turn on the persistent
+# compilation cache (the CLI's default) for the rest of the process.  It stays off
+# (HELIXROD_CACHE=0): CI workers aborted inside XLA's (de)serialisation of an executable,
+# once reading back one that another checkout's run had cached in ~/.cache/helixrod
+# (compilation_cache.get_executable_and_time) and once writing one into a fresh per-process
+# directory (put_executable_and_time, from test_fit_design after test_fit_compare's
+# `helixrod fit --compare`).  tests/test_cache.py checks the cache in subprocesses; a
+# directory of this run's own is kept for anything that still turns it on.
+os.environ["HELIXROD_CACHE"] = "0"
 os.environ["HELIXROD_CACHE_DIR"] = tempfile.mkdtemp(prefix=f"helixrod-cache-{os.environ.get('PYTEST_XDIST_WORKER', 'main')}-")
 
 

@@ -30,8 +30,9 @@ app = typer.Typer(add_completion=False, help="helixrod: elastic Kirchhoff rods a
 @app.callback()
 def _main(
     cache: bool = typer.Option(
-        True, "--cache/--no-cache", help="keep compiled programs on disk for later runs ($HELIXROD_CACHE_DIR, "
-        "default ~/.cache/helixrod/jax; safe to delete)"
+        True, "--cache/--no-cache", envvar="HELIXROD_CACHE",
+        help="keep compiled programs on disk for later runs ($HELIXROD_CACHE_DIR, default ~/.cache/helixrod/jax; "
+        "safe to delete); HELIXROD_CACHE=0 turns the default off",
     ),
 ) -> None:
     """helixrod command line."""

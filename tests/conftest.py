@@ -21,17 +21,11 @@ os.environ["HELIXROD_CACHE"] = "0"
 os.environ["HELIXROD_CACHE_DIR"] = tempfile.mkdtemp(prefix=f"helixrod-cache-{os.environ.get('PYTEST_XDIST_WORKER', 'main')}-")
 
 
-def pytest_configure(config):
-    # With `--dist loadfile` (pyproject's addopts) a file is one unit of work; xdist's default
-    # order (most tests first) puts the notebooks -- one test each, but the longest units --
-    # last, so the run ends with one worker on a long notebook.  Keep the order set below.
-    if getattr(config.option, "dist", "no") in ("loadfile", "loadscope"):
-        config.option.loadscopereorder = False
-
-
 def pytest_collection_modifyitems(config, items):
-    """Longest units first: the notebooks, then the test files with most tests (xdist's own
-    default order); the order within a file is unchanged."""
+    """Longest units first: the notebooks, then the test files with most tests; the order
+    within a file is unchanged.  xdist's work stealing hands each worker a contiguous run of
+    this order, so the tests of a file mostly share one worker (and its compiled programs),
+    and the long notebooks do not end the run on one worker."""
     files = collections.Counter(item.path for item in items)
     first = {}
     for index, item in enumerate(items):

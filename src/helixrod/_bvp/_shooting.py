@@ -296,24 +296,34 @@ def _trajectory_nodes(rod, length, start, N, M0, k, options: BoundaryValueOption
     return jnp.where(good, sol.x, x_free), jnp.where(good, sol.frame, frame_free)
 
 
+def warm_start_of(rod, length, start, end, guess, options: BoundaryValueOptions, guess_kind: str, ode_tol) -> WarmStart:
+    """`guess` -- `None` (the default guess of `guess_kind`), a `WarmStart`, or a pair
+    `(n0, m0)` of start wrenches (director frame) -- as a `WarmStart` of
+    `options.segments` pieces.  Eager callers convert their guess with it before `solve`, so
+    that every guess reaches the large solve program in the same form (one compilation)."""
+    k = options.segments
+    if isinstance(guess, WarmStart):
+        return guess
+    if guess is None:
+        return default_warm_start(rod, length, start, end, k, guess_kind)
+    N, M0 = start.frame @ guess[0], start.frame @ guess[1]
+    if k > 1:
+        x_nodes, frame_nodes = _trajectory_nodes(rod, length, start, N, M0, k, options, ode_tol)
+    else:
+        x_nodes, frame_nodes = free_nodes(rod, length, start, k)
+    return WarmStart(N, M0, x_nodes[:k], frame_nodes[:k])
+
+
 def initial(rod, length, start, end, guess, options: BoundaryValueOptions, guess_kind: str, scales, ode_tol):
-    """Initial unknown vector and reference nodes.  `guess`: `None` (the default guess of
-    `guess_kind`), a `WarmStart`, or a pair `(n0, m0)` of start wrenches (director frame)."""
+    """Initial unknown vector and reference nodes (`guess` as `warm_start_of`; the unloaded
+    rod under `continuation`)."""
     k = options.segments
     if options.continuation > 0:
         x_nodes, frame_nodes = free_nodes(rod, length, start, k)
         N = M0 = jnp.zeros(3)
-    elif guess is None:
-        warm = default_warm_start(rod, length, start, end, k, guess_kind)
-        N, M0, x_nodes, frame_nodes = warm.force, warm.moment0, warm.node_position, warm.node_frame
-    elif isinstance(guess, WarmStart):
-        N, M0, x_nodes, frame_nodes = guess.force, guess.moment0, guess.node_position, guess.node_frame
     else:
-        N, M0 = start.frame @ guess[0], start.frame @ guess[1]
-        if k > 1:
-            x_nodes, frame_nodes = _trajectory_nodes(rod, length, start, N, M0, k, options, ode_tol)
-        else:
-            x_nodes, frame_nodes = free_nodes(rod, length, start, k)
+        warm = warm_start_of(rod, length, start, end, guess, options, guess_kind, ode_tol)
+        N, M0, x_nodes, frame_nodes = warm.force, warm.moment0, warm.node_position, warm.node_frame
     y = jnp.concatenate([N / scales[1], M0 / scales[2], jnp.zeros(6 * (k - 1))])
     return y, x_nodes[1:k], frame_nodes[1:k]
 

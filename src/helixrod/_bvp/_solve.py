@@ -54,6 +54,7 @@ from ._shooting import (
     per_piece,
     rebase,
     root,
+    warm_start_of,
 )
 
 
@@ -153,6 +154,40 @@ def _observe(args: ShootingArgs, options: BoundaryValueOptions, N, M0, xs, frame
     return saveat, x[which, idx], frame[which, idx], n[which, idx], m[which, idx]
 
 
+def ode_tolerances(options: BoundaryValueOptions, dtype):
+    """(rtol, atol) of the flows, then (rtol, atol) of their Jacobian (`jacobian_tolerance`)."""
+    ode_tol = jnp.stack([options.ode_rtol, options.ode_atol]).astype(dtype)
+    return jnp.concatenate([ode_tol, jacobian_tolerance(ode_tol)])
+
+
+@functools.partial(jax.jit, static_argnames="guess_kind")
+def as_warm_start(rod, length, start: Clamped, end: EndCondition, guess, options: BoundaryValueOptions, guess_kind="helix"):
+    """`guess` (as `solve`) as a `WarmStart` (`warm_start_of`), in a program of its own: an
+    eager caller passes every guess to `solve` in this one form, so the large solve program
+    is compiled once for all of them (not once for the default guess, once for a start
+    wrench and once for a warm start).  Not for `continuation > 0` (its start is the
+    unloaded rod)."""
+    options = options.for_dtype(float_dtype())
+    return no_gradient(warm_start_of(rod, length, start, end, guess, options, guess_kind, ode_tolerances(options, float_dtype())))
+
+
+@jax.jit
+def _stability_of(rod, length, end: EndCondition, sol, options: BoundaryValueOptions):
+    """The stability fields of a solution on `options.stability_pieces` pieces, in a program
+    of its own (a finer stability test needs no new solve, and no compilation of one)."""
+    index, margin, push = stability(rod, length, end, sol.force, sol.moment0, sol.node_position, sol.node_frame, options)
+    defined = sol.result == RESULTS.successful
+    return jnp.where(defined, index, -1), jnp.where(defined, margin, jnp.nan), jnp.where(defined, push, 0.0)
+
+
+def restability(rod, length, end: EndCondition, sol, options: BoundaryValueOptions):
+    """`sol` with its stability tested on `options.stability_pieces` pieces (eager)."""
+    index, margin, push = _stability_of(rod, length, end, sol, options)
+    return dataclasses.replace(
+        sol, instability_index=index, stability_margin=margin, unstable_direction=push, stability_pieces=options.stability_pieces
+    )
+
+
 @functools.partial(jax.jit, static_argnames="guess_kind")
 def solve(rod, length, start: Clamped, end: EndCondition, guess, saveat, options: BoundaryValueOptions, guess_kind="helix"):
     """The solve behind `solve_boundary_value` (checked inputs; never raises: read
@@ -164,6 +199,8 @@ def solve(rod, length, start: Clamped, end: EndCondition, guess, saveat, options
     valid = valid & jnp.all(jnp.isfinite(start.position)) & jnp.all(jnp.isfinite(start.frame))
     if isinstance(guess, tuple):
         valid = valid & jnp.all(jnp.isfinite(guess[0])) & jnp.all(jnp.isfinite(guess[1]))
+    elif isinstance(guess, WarmStart):
+        valid = valid & jnp.all(jnp.isfinite(guess.force)) & jnp.all(jnp.isfinite(guess.moment0))
     # Invalid input (under vmap): solve a harmless problem, return NaN.
     length = jnp.where(valid, length, 1.0)
     harmless_start = Clamped(*unloaded_state(no_gradient(rod), 0.0))
@@ -173,8 +210,7 @@ def solve(rod, length, start: Clamped, end: EndCondition, guess, saveat, options
     ell = length_scale(rod, length)
     k_scale = stiffness_scale(rod)
     scales = jnp.stack([ell, k_scale / ell**2, k_scale / ell])
-    ode_tol = jnp.stack([options.ode_rtol, options.ode_atol]).astype(dtype)
-    ode_tol = jnp.concatenate([ode_tol, jacobian_tolerance(ode_tol)])
+    ode_tol = ode_tolerances(options, dtype)
 
     y0, ref_x, ref_frame = no_gradient(initial(rod, length, start, end, guess, options, guess_kind, scales, ode_tol))
     args = ShootingArgs(rod, length, start, end, ref_x, ref_frame, scales, ode_tol)
@@ -351,6 +387,8 @@ def solve_boundary_value(
         pieces = options.stability_pieces and max(options.stability_pieces, stability_pieces_for(rod, length, n0, m0))
         options = dataclasses.replace(options, segments=segments_needed, stability_pieces=min(pieces, MAX_STABILITY_PIECES))
     guess = fit_guess(guess, options.segments, start)
+    if options.continuation == 0:
+        guess = as_warm_start(rod, length, start, end, guess, options, guess_kind)
     sol = solve(rod, length, start, end, guess, saveat, options, guess_kind)
     if is_concrete(sol) and jnp.ndim(sol.residual) == 0:
         sol = _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind)
@@ -466,9 +504,13 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
         while bool(sol.ok) and int(sol.instability_index) < 0 and not moment_loaded and 0 < pieces < MAX_STABILITY_PIECES:
             pieces = min(max(2 * pieces, _solution_pieces(rod, length, sol)), MAX_STABILITY_PIECES)
             options = dataclasses.replace(options, stability_pieces=pieces)
-            warm = sol.warm_start() if sol.segments == options.segments else None
-            sol = solve(rod, length, start, end, warm, saveat, options, guess_kind)
+            sol = restability(rod, length, end, sol, options)
         return sol
+
+    def solved(guess, options):
+        if options.continuation == 0:
+            guess = as_warm_start(rod, length, start, end, guess, options, guess_kind)
+        return resolved(solve(rod, length, start, end, guess, saveat, options, guess_kind), options)
 
     sol = resolved(sol, options)
     acceptable = lambda s: bool(s.ok) and int(s.instability_index) <= 0  # noqa: E731
@@ -484,7 +526,7 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
         for sign in (1.0, -1.0, 4.0, -4.0):
             N = trial.force + sign * trial.unstable_direction[:3]
             M0 = trial.moment0 + sign * trial.unstable_direction[3:]
-            pushed = resolved(solve(rod, length, start, end, (start.frame.T @ N, start.frame.T @ M0), saveat, options, guess_kind), options)
+            pushed = solved((start.frame.T @ N, start.frame.T @ M0), options)
             if acceptable(pushed):
                 return pushed
         return None
@@ -498,12 +540,12 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
     straight = not np.any(np.asarray(rod.uhat)[:2] != 0)
     buckled = buckled_guess(rod, length, start, end, bending) if straight and int(end.kind) == CLAMPED else None
     if buckled is not None:
-        found = settled(resolved(solve(rod, length, start, end, buckled, saveat, options, guess_kind), options))
+        found = settled(solved(buckled, options))
         if found is not None:
             return found
     for steps in FALLBACK_CONTINUATION:
         homotopy = dataclasses.replace(options, continuation=steps)
-        trial = resolved(solve(rod, length, start, end, None, saveat, homotopy, guess_kind), homotopy)
+        trial = solved(None, homotopy)
         if acceptable(trial) or (bool(trial.ok) and not bool(sol.ok)):
             sol = trial
         if acceptable(sol):

@@ -31,6 +31,7 @@ def atlas():
     return helixrod.stability_atlas(ROD, kappa, tau, 5.0)
 
 
+@pytest.mark.heavy
 def test_matches_the_integrated_test_of_a_boundary_value_solve(atlas):
     eq = helixrod.helix_equilibria(ROD, atlas.kappa, atlas.tau)
     index = np.asarray(atlas.instability_index)
@@ -74,6 +75,7 @@ def test_bad_input():
         helixrod.stability_atlas(ROD, jnp.ones(3), jnp.ones(4), 5.0)
 
 
+@pytest.mark.heavy
 def test_cli_stability(tmp_path):
     from typer.testing import CliRunner
 

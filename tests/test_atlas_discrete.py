@@ -67,6 +67,7 @@ def atlas():
     return helixrod.stability_atlas(ROD, kappa, tau, LENGTH)
 
 
+@pytest.mark.heavy
 def test_index_is_the_number_of_negative_discrete_eigenvalues(atlas):
     for j, (kappa, tau, slot, expected) in enumerate(POINTS):
         n, u = helix(kappa, tau, slot)

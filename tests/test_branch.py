@@ -35,6 +35,7 @@ def euler():
     return rod, straight
 
 
+@pytest.mark.heavy
 def test_straight_column_branch_points_and_index(euler):
     _, straight = euler
     assert straight.message.startswith("reached the end")
@@ -52,6 +53,7 @@ def test_straight_column_branch_points_and_index(euler):
     assert np.max(np.abs(np.asarray(straight.moment0))) < 1e-9
 
 
+@pytest.mark.heavy
 def test_switch_onto_the_post_buckled_elastica(euler):
     rod, straight = euler
     (bp, _) = straight.points("branch point")
@@ -79,6 +81,7 @@ def test_switch_onto_the_post_buckled_elastica(euler):
     np.testing.assert_allclose(np.asarray(again.end_position), tip[i], atol=1e-9)
 
 
+@pytest.mark.heavy
 def test_buckled_strip_turned_in_its_plane_folds():
     rod = helixrod.Rod(1.0, 10.0, 5.0)
     turned = lambda a: helixrod.Clamped(jnp.stack([0.0 * a, 0.0 * a, 0.9 + 0.0 * a]), so3_exp(jnp.stack([a, 0.0 * a, 0.0 * a])))  # noqa: E731

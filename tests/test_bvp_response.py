@@ -35,6 +35,7 @@ def _tweezer_curve(length, forces, options):
     return hr.force_extension(SPRING, length, forces, rotation=length * SPRING_NORM, segments=4, options=options)
 
 
+@pytest.mark.heavy
 def test_response_curves_converge_to_the_bulk_helix():
     """The end effect of the clamps on the extension converges to a constant as the rod
     grows (so its share of the total falls like 1/L); the torque tends to the bulk one."""
@@ -59,6 +60,7 @@ def test_response_curves_converge_to_the_bulk_helix():
     np.testing.assert_allclose(curves[0].bulk_extension[2], bulk.extension, rtol=1e-12)
 
 
+@pytest.mark.heavy
 def test_changing_tolerances_does_not_retrace():
     """The options travel as an argument of the jitted curve: other tolerances reuse its one
     trace (assert_max_traces) and take effect (each solution's tolerance is 10 atol)."""
@@ -74,6 +76,7 @@ def test_changing_tolerances_does_not_retrace():
     np.testing.assert_allclose(default.solutions.tolerance, 1e-9, rtol=1e-15)
 
 
+@pytest.mark.heavy
 def test_force_extension_command(tmp_path):
     """`helixrod force-extension` (tests/test_cli.py has the other commands); its eager 4-segment
     curve is the compiled program of the next test."""
@@ -94,6 +97,7 @@ def test_force_extension_command(tmp_path):
     assert "F = 0.5 did not converge: The maximum number of steps" in text and "try --segments 8" in text
 
 
+@pytest.mark.heavy
 def test_rotation_response_agrees_with_force_extension():
     """Both curve functions solve the same problems (they share one compiled program with the
     command above): the

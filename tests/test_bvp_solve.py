@@ -23,6 +23,7 @@ import helixrod as hr
 from helixrod._bvp import stack_ends
 
 
+@pytest.mark.heavy
 def test_loaded_end_reproduces_the_initial_value_solution():
     """Integrate from a wrench, read the end load, solve the BVP from a wrong guess."""
     start = hr.Clamped((0.2, -0.1, 0.3), hr.so3_exp(jnp.array([0.3, -0.2, 0.5])))
@@ -52,6 +53,7 @@ def test_loaded_end_reproduces_the_initial_value_solution():
         np.testing.assert_allclose(sol.x[0], start.position, atol=1e-15)
 
 
+@pytest.mark.heavy
 def test_rod_cut_from_a_uniform_helix_is_that_helix():
     """A piece of a loaded uniform helix, with the helix's own end conditions, is the helix,
     for every kind of end condition and for single and multiple shooting."""
@@ -108,6 +110,7 @@ def scipy_clamped(rod, length, start, end, mesh=81, tol=1e-9):
     return out
 
 
+@pytest.mark.heavy
 def test_clamped_clamped_satisfies_its_conditions_and_matches_scipy():
     length = 1.2 * TURN
     h0, theta0 = (float(a) for a in hr.unloaded_observables(ROD, length))
@@ -200,6 +203,7 @@ def test_options_reject_bad_values():
         hr.solve_boundary_value(SPRING, 10.0, end=end, options={"segments": 2})
 
 
+@pytest.mark.heavy
 def test_keywords_override_the_options():
     """`options=` with a keyword: the keyword replaces that field, the others stay (the
     clamped helix of the test above, with the 3-segment configuration compiled there)."""
@@ -220,6 +224,7 @@ def test_keywords_override_the_options():
 # -- derivatives ----------------------------------------------------------------------------
 
 
+@pytest.mark.heavy
 def test_gradients_through_the_boundary_value_solve_match_central_differences():
     length = 1.5 * TURN
     h0, theta0 = (float(a) for a in hr.unloaded_observables(SPRING, length))
@@ -343,6 +348,7 @@ print(json.dumps({"dtype": str(sol.force.dtype), "force": sol.force.tolist(), "o
 """
 
 
+@pytest.mark.heavy
 def test_the_readme_spring_solves_in_float32():
     """With x64 off (a subprocess: the session runs in float64) the README's spring converges:
     the tolerances are raised to 100 float32 epsilons (`BoundaryValueOptions.for_dtype`) and

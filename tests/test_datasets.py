@@ -48,6 +48,7 @@ def test_tweezer_example_loads_and_matches_its_model():
     assert np.all(np.abs(z) < 5)
 
 
+@pytest.mark.heavy
 def test_tweezer_fit_recovers_generating_rod():
     """fit_stiffness on the tweezer dataset (errors in variables, with the kappa-tau
     correlation) recovers the generating K2, K3, K23 within the reported errors, with a

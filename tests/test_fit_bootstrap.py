@@ -3,11 +3,13 @@ the Gauss-Newton standard errors (the fit: the configuration of tests/test_fit_p
 
 import jax
 import jax.numpy as jnp
+import pytest
 from helpers import fit_grid, random_rods
 
 import helixrod as hr
 
 
+@pytest.mark.heavy
 def test_bootstrap_brackets_fit(rng):
     kappa, tau = fit_grid(rng)
     rod = random_rods(rng, 1)[0]

@@ -22,6 +22,7 @@ CLASS_RODS = {
 }
 
 
+@pytest.mark.heavy
 def test_the_generating_class_is_recommended(rng):
     kappa, tau = fit_grid(rng)
     for name, rod in CLASS_RODS.items():
@@ -65,6 +66,7 @@ def _check_chi2(rod, larger, smaller, df, kappa, tau):
     assert 0 < simulated.p_value <= 1 and simulated.p_value_chi2 == comparison.tests[0]["p_value"]
 
 
+@pytest.mark.heavy
 def test_likelihood_ratio_is_chi2_on_a_regular_pair(rng):
     """K3 held at its true value inside the isotropic class: 1 df."""
     kappa, tau = fit_grid(rng)

@@ -38,6 +38,7 @@ STRUCTURE = {
 OBSERVE = {"force": ("force",), "moment": ("moment",), "both": ("force", "moment")}
 
 
+@pytest.mark.heavy
 def test_structural_identifiability_table(rng):
     for (model, fit_uhat), (ranks, p) in STRUCTURE.items():
         rod = _random_rod(rng, model, fit_uhat)
@@ -50,6 +51,7 @@ def test_structural_identifiability_table(rng):
                 assert shift and shift[0]["K1"] == pytest.approx(shift[0]["K3"], abs=0.05)
 
 
+@pytest.mark.heavy
 def test_designs_beat_uniform_grids_and_match_the_fit(rng):
     uniform = np.linspace(0, KAPPA.size - 1, 10).round().astype(int)
     for _ in range(3):

@@ -28,6 +28,7 @@ def noisy():
     return rod, data, hr.fit_stiffness(data, uhat=rod.uhat)
 
 
+@pytest.mark.heavy
 def test_helix_residuals_are_the_normalised_errors_of_the_chosen_registers(noisy):
     """residuals = ((F_pred - F)/sigma_F, (M_pred - M)/sigma_M) with F_pred, M_pred those of
     helix_equilibria of the fitted rod at the register slot the model chose (the one nearest
@@ -54,6 +55,7 @@ def test_helix_residuals_are_the_normalised_errors_of_the_chosen_registers(noisy
     np.testing.assert_array_equal(slot, np.argmin(dist, axis=1))
 
 
+@pytest.mark.heavy
 def test_solver_objects(noisy):
     """An optimistix least-squares solver object gives the same fit as the default alias
     (helixrod's Levenberg-Marquardt, which differs from optimistix's only in accepting steps

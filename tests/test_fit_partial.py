@@ -70,6 +70,7 @@ def test_force_only_and_moment_only_fits_determine_what_they_should(rng):
     assert np.isfinite(float(fit.stderr["K1"])) and np.isfinite(float(fit.stderr["K3"])) and np.isinf(float(fit.stderr["K2"]))
 
 
+@pytest.mark.heavy
 def test_masked_points_residuals_and_bootstrap(rng):
     """Half the points force-only, half moment-only: the residuals are the observed ones,
     the cost is recomputed from the predictions, and the bootstrap runs on the masks."""

@@ -20,6 +20,7 @@ def noisy_fit():
     return data, rod, hr.fit_stiffness(data, uhat=rod.uhat)
 
 
+@pytest.mark.heavy
 def test_profile_against_independent_refits_and_the_wald_interval(noisy_fit):
     data, rod, fit = noisy_fit
     assert fit.ok

@@ -6,6 +6,7 @@ directions of K1 = K2.  Every fit here has the configuration of tests/test_fit_p
 
 import jax
 import numpy as np
+import pytest
 from helpers import fit_grid, parameter_vector, random_rods
 
 import helixrod as hr
@@ -48,6 +49,7 @@ def test_every_frame_symmetry_leaves_predictions_unchanged(rng):
     assert len({tuple(np.round(q, 12)) for q in images}) == 8
 
 
+@pytest.mark.heavy
 def test_symmetric_case_reports_symmetry_and_null_direction(rng):
     """uhat1 = uhat2 = 0: the frame symmetries apply and are reported; the fit lies on the
     truth's orbit.  K1 = K2 with couplings: a continuous rotation of the frame, so the fit

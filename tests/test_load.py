@@ -4,6 +4,7 @@ import pytest
 import helixrod as hr
 
 
+@pytest.mark.heavy
 def test_round_trip_with_helix_equilibria():
     rod = hr.Rod(1.0, 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
     for kappa, tau in [(0.9, 0.7), (2.0, -1.2)]:

@@ -42,6 +42,7 @@ def critical(fn, lo, hi):
     return scipy.optimize.brentq(fn, lo, hi, xtol=1e-13)
 
 
+@pytest.mark.heavy
 def test_euler_clamped_free():
     rod = helixrod.Rod(1.0, 1.0, 0.8)
     p_c = np.pi**2 / 4
@@ -57,6 +58,7 @@ def test_euler_clamped_free():
     assert np.allclose(np.diff(margins), np.diff(margins)[0], rtol=1e-3)
 
 
+@pytest.mark.heavy
 def test_buckled_cantilever_by_default():
     """Above the Euler load the straight state is unstable; the default solve pushes along
     its unstable direction onto the buckled elastica: with $k = \\sin(\\alpha/2)$ of the tip
@@ -101,6 +103,7 @@ def test_greenhill_twisted_shaft():
     assert int(above.instability_index) == 2
 
 
+@pytest.mark.heavy
 def test_matches_a_discrete_second_variation():
     """A straight, twisted rod with anisotropy and bend-twist coupling under a compressive
     tweezer force: the critical force of the conjugate-point test and of the brute-force
@@ -128,6 +131,7 @@ def test_matches_a_discrete_second_variation():
         assert int(sol.instability_index) == int(np.sum(discrete(P) < 0)), P
 
 
+@pytest.mark.heavy
 def test_wrong_branch_is_flagged_and_matches_the_discrete_index():
     """A cantilever under a large side load: the bulk guess alone lands on the branch bent
     back against the load; both tests call it unstable with two unstable directions, and
@@ -177,6 +181,7 @@ def test_large_deflection_cantilever_from_the_defaults():
         assert np.allclose(np.asarray(sol.end_position), [x, 0.0, z], atol=1e-8), P
 
 
+@pytest.mark.heavy
 def test_cantilever_where_the_bulk_guess_fails():
     rod = helixrod.Rod(1.0, 1.0, 0.8)
     for P in (7.0, 14.0):
@@ -207,6 +212,7 @@ def clamped_elastica(h):
     return P, 2 * np.sqrt(m * P)
 
 
+@pytest.mark.heavy
 def test_clamped_ends_brought_together_buckle_by_default_and_turn():
     """Every built-in guess keeps the rod straight, which cannot shorten; the default now
     buckles it into its first mode (in its softer plane), exact against the elliptic

@@ -872,6 +872,7 @@ def test_gradients_finite_at_the_edges():
         assert np.all(np.isfinite(np.asarray(g)))
 
 
+@pytest.mark.heavy
 def test_solve_static_gradient_at_zero_rotation():
     """solve_static through u = 0 (a straight, untwisted rod under tension: the group
     exponential at zero angle, where sin(theta)/theta needs care), forward mode, 4 fixed
@@ -916,6 +917,7 @@ _FLOAT32_SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.heavy
 def test_float32_accuracy(rng):
     """float32 mode (x64 off, in a subprocess: the test session runs in float64): 64 random
     coupled, curved rods at random helices, compared with float64 on the same (float32)

@@ -98,6 +98,7 @@ def test_moroz_nelson_softening_of_the_rods_own_twist_modulus():
     )
 
 
+@pytest.mark.heavy
 def test_buckling_torque_and_plateau_follow_marko():
     F, P, n_bp = 1.0, 24.0, 8000
     turns = jnp.linspace(-40.0, 40.0, 161)
@@ -126,6 +127,7 @@ def test_buckling_torque_and_plateau_follow_marko():
     assert held.phase.tolist() == [0, 2]
 
 
+@pytest.mark.heavy
 def test_twist_stretch_coupling_tilts_the_hat():
     # g < 0 (overwinding under tension): the extension peaks at positive turns.
     turns = jnp.linspace(-6.0, 6.0, 121)
@@ -133,6 +135,7 @@ def test_twist_stretch_coupling_tilts_the_hat():
     assert float(turns[jnp.argmax(hat.extension)]) > 0
 
 
+@pytest.mark.heavy
 def test_derivatives_match_central_differences():
     def extension(K2, persistence, turns):
         rod = hr.Rod(ROD.K1, K2, ROD.K3, ROD.K13, ROD.K23, ROD.uhat)
@@ -194,6 +197,7 @@ def test_tweezer_fit_recovers_the_generating_parameters():
         assert abs(float(fit.params[name]) - float(value)) < 3 * float(fit.stderr[name]), name
 
 
+@pytest.mark.heavy
 def test_moduli_along_the_force_range():
     forces = jnp.array([1e-3, 1.0, 10.0, 40.0])
     moduli = dna.tweezer_moduli(ROD, forces, persistence_length=A)
@@ -289,6 +293,7 @@ def test_tweezer_error_bars_are_calibrated():
         assert 0.9 < covered < 0.99, (name, covered)
 
 
+@pytest.mark.heavy
 def test_the_static_paths_agree_with_the_general_one():
     """Free swivels (one solve), torque-controlled points (no iteration) and the traced
     general path (the chord iteration) give the same response and derivatives."""

@@ -66,6 +66,7 @@ def _cells_match(a: str, b: str) -> bool:
     return math.isclose(x, y, rel_tol=1e-9, abs_tol=1e-12) or (math.isnan(x) and math.isnan(y))
 
 
+@pytest.mark.heavy
 def test_bundled_curves_load_and_are_what_the_script_writes(generator, example, tmp_path):
     data = example.data
     assert data.n_points == 18 * BLOCK and data.molecule_names == ("mol1", "mol2", "mol3")
@@ -161,6 +162,7 @@ def _subset_csv(example, path):
     return subset
 
 
+@pytest.mark.heavy
 def test_cli_tweezer_fit_on_a_subset(example, tmp_path):
     subset = _subset_csv(example, tmp_path / "subset.csv")
     args = ["tweezer-fit", str(tmp_path / "subset.csv"), "--out", str(tmp_path / "fit.json"), "--plot", str(tmp_path / "fit.png")]

@@ -135,10 +135,6 @@ def _args(problem: _Problem, end_at, lam, options: BoundaryValueOptions) -> Shoo
     return ShootingArgs(rod, length, problem.start, end, problem.ref_x, problem.ref_frame, scales, ode_tol)
 
 
-def _equations(z, problem, end_at, options):
-    return shooting_residual(z[:-1], _args(problem, end_at, z[-1] * problem.scale, options), options)[0]
-
-
 def _tangent(J, previous):
     """The unit null vector of `J` `(6k, 6k + 1)` with a positive component along
     `previous`, and the sign of the determinant of the bordered Jacobian."""
@@ -155,31 +151,45 @@ def _point(z_pred, row, target, previous, problem, end_at, options):
     """Correct `z_pred` onto the branch under the constraint `row . z = target`, then the
     tangent (oriented by `previous`), the determinant's sign, the nodes and the stability
     there.  Never raises: read `converged`."""
-    G = lambda z: _equations(z, problem, end_at, options)  # noqa: E731
     tolerance = options.atol
 
+    def evaluate(z):
+        """The equations, their Jacobian and the pieces at `z`, from one forward-mode pass
+        (the program holds one copy of the flows and their derivatives, not three)."""
+
+        def equations(z):
+            args = _args(problem, end_at, z[-1] * problem.scale, options)
+            g, pieces = shooting_residual(z[:-1], args, options)
+            return g, (g, pieces)
+
+        J, (g, pieces) = jax.jacfwd(equations, has_aux=True)(z)
+        return g, J, pieces
+
     def unfinished(state):
-        z, i, size = state
+        z, i, size = state[0], state[1], state[2]
         return (i < CORRECTOR_STEPS) & (size > tolerance) & jnp.all(jnp.isfinite(z))
 
     def newton(state):
-        z, i, _ = state
-        g = G(z)
-        J = jax.jacfwd(G)(z)
+        z, i = state[0], state[1]
+        g, J, pieces = evaluate(z)
         b = jnp.concatenate([g, (row @ z - target)[None]])
         # A point already on the branch takes no step: at a branch point the bordered
         # Jacobian is singular whatever the row (the kernel of G_z is two-dimensional).
         done = jnp.max(jnp.abs(b)) <= 0.1 * tolerance
         A = jnp.concatenate([J, row[None]], 0)
         dz = jnp.where(done, 0.0, jnp.linalg.solve(jnp.where(done, jnp.eye(z.size, dtype=z.dtype), A), b))
-        return z - dz, i + 1, jnp.where(done, 0.0, jnp.maximum(jnp.max(jnp.abs(g)), jnp.max(jnp.abs(dz))))
+        size = jnp.where(done, 0.0, jnp.maximum(jnp.max(jnp.abs(g)), jnp.max(jnp.abs(dz))))
+        return z - dz, i + 1, size, g, J, pieces
 
-    z, steps, _ = jax.lax.while_loop(unfinished, newton, (z_pred, jnp.asarray(0), jnp.asarray(jnp.inf, z_pred.dtype)))
+    # The Jacobian, residual and pieces returned are those of the last Newton iterate, before
+    # its step: on convergence that step is below the tolerance.
+    shapes = jax.eval_shape(evaluate, z_pred)
+    state = (z_pred, jnp.asarray(0), jnp.asarray(jnp.inf, z_pred.dtype), *jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), shapes))
+    z, steps, _, g, J, pieces = jax.lax.while_loop(unfinished, newton, state)
+    (N, M0, xs, frames), ends = pieces
     args = _args(problem, end_at, z[-1] * problem.scale, options)
-    g, ((N, M0, xs, frames), ends) = shooting_residual(z[:-1], args, options)
-    J = jax.jacfwd(G)(z)
     residual = jnp.max(jnp.abs(g))
-    converged = jnp.isfinite(residual) & (residual <= 10 * tolerance) & jnp.all(jnp.isfinite(J))
+    converged = (steps > 0) & jnp.all(jnp.isfinite(z)) & jnp.isfinite(residual) & (residual <= 10 * tolerance) & jnp.all(jnp.isfinite(J))
     t, sign = _tangent(jnp.where(converged, J, 0.0), previous)
     if options.stability_pieces > 0:
         index, margin, _ = stability(problem.rod, problem.length, args.end, N, M0, xs, frames, options)
@@ -361,7 +371,8 @@ def follow_branch(
             secant = new["z"] - current["z"]
             fraction = (bound / scale - float(current["z"][-1])) / float(secant[-1])
             row = jnp.zeros_like(secant).at[-1].set(1.0)
-            new = _point(current["z"] + fraction * secant, row, bound / scale, current["tangent"], problem, end, options)
+            target = jnp.asarray(bound / scale, secant.dtype)  # an array: a Python float would be static (a new compilation)
+            new = _point(current["z"] + fraction * secant, row, target, current["tangent"], problem, end, options)
             if not bool(new["converged"]):
                 message = f"could not land on the end of the interval at {bound:.6g}"
                 break

@@ -3,6 +3,7 @@ changing matplotlib's backend, and missing fields are named."""
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 from helpers import SWEEP_KAPPA as KAPPA, SWEEP_ROD as ROD, SWEEP_TAU as TAU, sweep_atlas, sweep_sensitivity
 
@@ -45,3 +46,25 @@ def test_hyperboloid_figure_without_a_path():
     fig = plot.plot_hyperboloid(hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0)), radii=(1.0, 3.0))
     assert isinstance(fig, Figure) and len(fig.axes) == 2
     assert matplotlib.get_backend() == backend
+
+
+def test_sensitivity_figure_leaves_out_zero_parameters_and_names_the_register(tmp_path):
+    """An elasticity theta dF/dtheta / F is identically zero at theta = 0: by default such
+    parameters get no (blank) panel; asked for by name, the panel says so.  The figure names
+    the register slot it shows."""
+    rod = hr.Rod(1.0, 1.5, 0.8, K13=0.2, uhat=(0.5, 0.0, 0.3))  # K23 = 0, uhat2 = 0
+    sens = hr.sensitivity(rod, [0.5, 1.0, 1.5], [-1.0, 0.0, 1.0, 2.0], progress=False)
+    assert sens.of("K23")[np.isfinite(sens.of("K23"))].max(initial=0.0) == 0.0
+    fig = plot.plot_sensitivity(sens)
+    titles = [ax.get_title() for ax in fig.axes if ax.get_visible() and ax.get_title()]
+    assert len(titles) == len(sens.wrt) - 2 and not any("K_{23}" in t or "hat u_2" in t for t in titles)
+    assert fig._suptitle.get_text() == "register slot 0 (global minimum of W on the circle)"
+    fig = plot.plot_sensitivity(sens, parameters=("K23", "K1"), slot=1)
+    titles = [ax.get_title() for ax in fig.axes if ax.get_visible() and ax.get_title()]
+    assert titles[0].endswith("= 0: elasticity 0") and "= 0" not in titles[1]
+    assert "slot 1 (global maximum)" in fig._suptitle.get_text()
+    assert plot.plot_sensitivity(sens, quantity="d_force").axes  # derivatives keep every parameter
+    with pytest.raises(ValueError, match="not among"):
+        plot.plot_sensitivity(sens, parameters=("K9",))
+    with pytest.raises(ValueError, match="slot must be"):
+        plot.plot_sensitivity(sens, slot=4)

@@ -16,6 +16,7 @@ def plot_hyperboloid(rod, path=None, *, u3_slice=1.5, radii=None, extent=3.0):
     span $[-$`extent`, `extent`$]$ in every twist component (units 1/length).  `path=None`
     returns the `Figure`; otherwise writes it (format by suffix) and returns `path`."""
     import jax.numpy as jnp
+    from contourpy import contour_generator
     from matplotlib.figure import Figure
 
     from ._equilibria import helix_equilibria
@@ -28,18 +29,21 @@ def plot_hyperboloid(rod, path=None, *, u3_slice=1.5, radii=None, extent=3.0):
     fig = Figure(figsize=(11, 5), layout="constrained")
     ax3 = fig.add_subplot(1, 2, 1, projection="3d")
     g = np.linspace(-extent, extent, 121)
-    # The hyperboloid is linear in u3 at fixed (u1, u2): solve for u3 to draw it.
     U1, U2 = np.meshgrid(g, g)
-    h0 = h(U1, U2, 0.0)
-    h1 = h(U1, U2, 1.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        U3 = -h0 / (h1 - h0)
-    U3[np.abs(U3) > extent] = np.nan
-    ax3.plot_surface(U1, U2, U3, color=OKABE_ITO[5], alpha=0.55, linewidth=0, antialiased=True)
+    # Drawn as its sections h = 0 at stacked u3 (conics), not as a graph u3(u1, u2): that
+    # graph is vertical where h does not depend on u3, and a clipped surface of it tears.
+    for u3 in np.linspace(-extent, extent, 25):
+        for line in contour_generator(g, g, h(U1, U2, u3)).lines(0.0):
+            ax3.plot(line[:, 0], line[:, 1], np.full(len(line), u3), color=OKABE_ITO[5], lw=0.9, alpha=0.75)
+    for line in contour_generator(g, g, h(U1, U2, u3_slice)).lines(0.0):  # the slice drawn on the right
+        ax3.plot(line[:, 0], line[:, 1], np.full(len(line), u3_slice), color=OKABE_ITO[0], lw=2)
+    ax3.set_xlim(-extent, extent)
+    ax3.set_ylim(-extent, extent)
+    ax3.set_zlim(-extent, extent)
     ax3.set_xlabel("$u_1$")
     ax3.set_ylabel("$u_2$")
     ax3.set_zlabel("$u_3$")
-    ax3.set_title("helix hyperboloid $m_1u_2 - m_2u_1 = 0$")
+    ax3.set_title("helix hyperboloid $m_1u_2 - m_2u_1 = 0$ (sections at fixed $u_3$)")
 
     ax = fig.add_subplot(1, 2, 2)
     H = h(U1, U2, u3_slice)
@@ -268,6 +272,8 @@ def _draw_map(fig, ax, x, y, values, title, label, *, diverging=True, zero_line=
     pass  # NaN cells stay transparent (white background)
     if zero_line and np.nanmin(values) < 0 < np.nanmax(values):
         ax.contour(x, y, np.nan_to_num(values), levels=[0.0], colors="k", linewidths=0.8)
+        ax.plot([], [], color="k", lw=0.8, label=f"${label.strip('$')} = 0$")
+        ax.legend(loc="upper left", fontsize=7, framealpha=0.9)
     fig.colorbar(mesh, ax=ax, label=label, extend="both")
     ax.set_title(title)
     ax.set_xlabel("torsion $\\tau$")
@@ -300,10 +306,23 @@ def plot_stable_wrench(result, path=None):
 def plot_sensitivity(sens, path=None, *, quantity="force_elasticity", slot=0, parameters=None):
     """Maps of one `sensitivity` output (default the force elasticity
     $(\\theta/F)\\,\\partial F/\\partial\\theta$) of register `slot` (0: the global energy
-    minimum, the stable branch) for each parameter in `parameters` (default all)."""
+    minimum of $W$ on the circle, 1: the maximum, 2/3: the inner pair) for each parameter
+    in `parameters`.  By default every parameter of `sens.wrt`, less, for an elasticity,
+    those whose value is zero: $\\theta\\,\\partial F/\\partial\\theta$ vanishes there, and
+    its panel would be blank (plot `d_force` or `d_moment` for them).  A zero parameter
+    asked for by name is drawn, and its panel says so."""
     if quantity not in sens:
         raise ValueError(f"unknown quantity {quantity!r}; valid are {list(sens)}")
-    parameters = sens.wrt if parameters is None else tuple(parameters)
+    if slot not in range(4):
+        raise ValueError(f"slot must be 0, 1, 2 or 3 (the register), got {slot!r}")
+    elasticity = quantity.endswith("_elasticity")
+    zero = {name for name in sens.wrt if elasticity and _parameter_value(sens.rod, name) == 0}
+    if parameters is None:
+        parameters = tuple(name for name in sens.wrt if name not in zero) or sens.wrt
+    parameters = tuple(parameters)
+    unknown = [name for name in parameters if name not in sens.wrt]
+    if unknown:
+        raise ValueError(f"parameters {unknown} are not among the sensitivity's wrt {list(sens.wrt)}")
     ncols = min(4, len(parameters))
     nrows = -(-len(parameters) // ncols)
     fig, axes = _figure(ncols, nrows, width=3.6, height=3.0)
@@ -313,10 +332,23 @@ def plot_sensitivity(sens, path=None, *, quantity="force_elasticity", slot=0, pa
               "d_phi": "\\partial\\varphi/\\partial\\theta"}.get(quantity, quantity)
     for ax, name in zip(axes, parameters):
         values = sens.of(name, quantity)[..., slot]
-        _draw_map(fig, ax, sens.tau, sens.kappa, values, f"$\\theta = {_tex_parameter(name)}$", f"${symbol}$")
+        title = f"$\\theta = {_tex_parameter(name)}$" + (" = 0: elasticity 0" if name in zero else "")
+        _draw_map(fig, ax, sens.tau, sens.kappa, values, title, f"${symbol}$")
     for ax in axes[len(parameters):]:
         ax.set_visible(False)
+    fig.suptitle(f"register slot {slot} ({REGISTER_SLOTS[slot]})", fontsize=9)
     return _finish(fig, path)
+
+
+#: What each register slot of `HelixEquilibria` and `sweep` holds.
+REGISTER_SLOTS = ("global minimum of W on the circle", "global maximum", "inner local minimum", "inner local maximum")
+
+
+def _parameter_value(rod, name):
+    """The value of one `sensitivity` parameter (`K1` ... `K23`, `uhat1` ... `uhat3`) of an unbatched rod."""
+    if name.startswith("uhat"):
+        return float(np.asarray(rod.uhat)[int(name[-1]) - 1])
+    return float(np.asarray(getattr(rod, name)))
 
 
 def _tex_parameter(name):

@@ -320,7 +320,6 @@ def follow_branch(
         # along the bifurcating direction, and compare signs from the next point on.
         here = dict(here, tangent=heading, sign=jnp.zeros(()))
     records = [here]
-    problems = [problem]
     arclength = [0.0]
     special = []
     message = f"reached max_points={max_points}"
@@ -355,7 +354,7 @@ def follow_branch(
         return best
 
     while len(records) < max_points:
-        current, problem = records[-1], problems[-1]
+        current = records[-1]
         new = corrected(current, problem, ds)
         turn = float(new["tangent"] @ current["tangent"])
         if not bool(new["converged"]) or turn < SMALLEST_COSINE:
@@ -407,7 +406,6 @@ def follow_branch(
             ))
         new, problem = rebased(new, problem)
         records.append(new)
-        problems.append(problem)
         arclength.append(arclength[-1] + step_taken)
         if ending:
             message = f"reached the end of the interval at {float(new['z'][-1]) * scale:.6g}"

@@ -17,6 +17,7 @@ from helpers import SPRING, SPRING_NORM, SPRING_TURN as TURN, tree_allclose
 from typer.testing import CliRunner
 
 import helixrod as hr
+from helixrod import plot
 from helixrod.cli import app
 
 FORCES = jnp.array([0.0, 0.01, 0.02, 0.03])
@@ -81,13 +82,21 @@ def test_force_extension_command(tmp_path):
     """`helixrod force-extension` (tests/test_cli.py has the other commands); its eager 4-segment
     curve is the compiled program of the next test."""
     out = tmp_path / "curve.json"
-    args = ["force-extension", "--turns", "2", "--forces", "0:0.03:4", "--segments", "4", "--out", str(out)]
+    args = ["force-extension", "--turns", "2", "--forces", "0:0.03:4", "--segments", "4", "--out", str(out),
+            "--plot", str(tmp_path / "curve.png")]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     assert "force-extension" in result.output and "rotation held" in result.output
+    assert (tmp_path / "curve.png").stat().st_size > 10_000
     curve = json.loads(out.read_text())
     direct = tweezer_curve(jnp.asarray(2 * TURN), jnp.linspace(0.0, 0.03, 4))
     np.testing.assert_allclose(curve["extension"], direct.extension, atol=1e-9)
+    # The figure: each response against the bulk, and below it finite - bulk (the end effects).
+    fig = plot.plot_response(direct)
+    labels = [ax.get_ylabel() for ax in fig.axes]
+    assert labels == ["extension $h$", "axial moment $M$", "extension: finite $-$ bulk", "axial moment: finite $-$ bulk"]
+    line = fig.axes[2].get_lines()[0]
+    np.testing.assert_allclose(line.get_ydata(), np.asarray(direct.extension) - np.asarray(direct.bulk_extension))
     bad = CliRunner().invoke(app, ["force-extension", "--uhat", "0,0,0"])
     assert bad.exit_code != 0 and "must not be zero" in bad.output
     # Rows that fail keep the force that was asked, say why, and what to try.

@@ -156,19 +156,25 @@ def plot_response(curve, path=None):
     swept control (`curve.swept`) on $x$, one panel per responding observable on $y$
     (those of `curve.controls` not prescribed, e.g. extension and moment for a
     force-extension curve at fixed rotation), the finite rod as points, the bulk as a
-    dashed line; points that did not converge are missing (NaN).  The title gives $L$ and
+    dashed line, and below each the difference finite $-$ bulk (the end effects); points
+    that did not converge are missing (NaN).  The title gives $L$ and
     the held control (`curve.held`).  `path=None` returns the matplotlib `Figure`;
     otherwise writes it (PNG/PDF/SVG by suffix) and returns `path`."""
     from ._bvp import AXIAL_CONTROLS, AXIAL_OBSERVABLES
 
     responses = [AXIAL_OBSERVABLES[i] for i in AXIAL_CONTROLS[curve.controls].responses]
     x = np.asarray(getattr(curve, curve.swept), dtype=float)
-    fig, axes = _figure(len(responses))
-    for ax, name in zip(axes, responses):
-        ax.plot(x, np.asarray(getattr(curve, name), dtype=float), "o-", ms=3, color=OKABE_ITO[0], label="finite rod")
-        ax.plot(x, np.asarray(getattr(curve, "bulk_" + name), dtype=float), "--", color=OKABE_ITO[1], label="uniform helix (bulk)")
-        ax.set_xlabel(_AXIAL_LABELS[curve.swept])
+    fig, axes = _figure(len(responses), 2, height=3.0)
+    for ax, below, name in zip(axes, axes[len(responses):], responses):
+        finite, bulk = (np.asarray(getattr(curve, n), dtype=float) for n in (name, "bulk_" + name))
+        ax.plot(x, finite, "o-", ms=3, color=OKABE_ITO[0], label="finite rod")
+        ax.plot(x, bulk, "--", color=OKABE_ITO[1], label="uniform helix (bulk)")
         ax.set_ylabel(_AXIAL_LABELS[name])
+        # The end effects: small beside the response itself, invisible in the panel above.
+        below.plot(x, finite - bulk, "o-", ms=3, color=OKABE_ITO[0])
+        below.axhline(0.0, color=OKABE_ITO[7], lw=0.8)
+        below.set_xlabel(_AXIAL_LABELS[curve.swept])
+        below.set_ylabel(f"{_AXIAL_LABELS[name].split(' $')[0]}: finite $-$ bulk")
     axes[0].legend()
     held = np.asarray(getattr(curve, curve.held), dtype=float)
     lo, hi = np.nanmin(held), np.nanmax(held)

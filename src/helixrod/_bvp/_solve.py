@@ -172,20 +172,30 @@ def as_warm_start(rod, length, start: Clamped, end: EndCondition, guess, options
 
 
 @jax.jit
-def _stability_of(rod, length, end: EndCondition, sol, options: BoundaryValueOptions):
+def _stability_of(rod, length, end: EndCondition, N, M0, xs, frames, result, options: BoundaryValueOptions):
     """The stability fields of a solution on `options.stability_pieces` pieces, in a program
     of its own (a finer stability test needs no new solve, and no compilation of one)."""
-    index, margin, push = stability(rod, length, end, sol.force, sol.moment0, sol.node_position, sol.node_frame, options)
-    defined = sol.result == RESULTS.successful
+    index, margin, push = stability(rod, length, end, N, M0, xs, frames, options)
+    defined = result == RESULTS.successful
     return jnp.where(defined, index, -1), jnp.where(defined, margin, jnp.nan), jnp.where(defined, push, 0.0)
 
 
 def restability(rod, length, end: EndCondition, sol, options: BoundaryValueOptions):
     """`sol` with its stability tested on `options.stability_pieces` pieces (eager)."""
-    index, margin, push = _stability_of(rod, length, end, sol, options)
+    index, margin, push = _stability_of(
+        rod, length, end, sol.force, sol.moment0, sol.node_position, sol.node_frame, sol.result, options
+    )
     return dataclasses.replace(
         sol, instability_index=index, stability_margin=margin, unstable_direction=push, stability_pieces=options.stability_pieces
     )
+
+
+def solve_with_warm_start(rod, length, start: Clamped, end: EndCondition, guess, saveat, options: BoundaryValueOptions, guess_kind="helix"):
+    """`solve`, with the guess first made a `WarmStart` (`as_warm_start`; not under
+    continuation, which starts from the unloaded rod)."""
+    if options.continuation == 0:
+        guess = as_warm_start(rod, length, start, end, guess, options, guess_kind)
+    return solve(rod, length, start, end, guess, saveat, options, guess_kind)
 
 
 @functools.partial(jax.jit, static_argnames="guess_kind")
@@ -387,9 +397,7 @@ def solve_boundary_value(
         pieces = options.stability_pieces and max(options.stability_pieces, stability_pieces_for(rod, length, n0, m0))
         options = dataclasses.replace(options, segments=segments_needed, stability_pieces=min(pieces, MAX_STABILITY_PIECES))
     guess = fit_guess(guess, options.segments, start)
-    if options.continuation == 0:
-        guess = as_warm_start(rod, length, start, end, guess, options, guess_kind)
-    sol = solve(rod, length, start, end, guess, saveat, options, guess_kind)
+    sol = solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind)
     if is_concrete(sol) and jnp.ndim(sol.residual) == 0:
         sol = _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind)
     if throw and is_concrete(sol) and jnp.ndim(sol.residual) == 0 and not bool(sol.ok):
@@ -508,9 +516,7 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
         return sol
 
     def solved(guess, options):
-        if options.continuation == 0:
-            guess = as_warm_start(rod, length, start, end, guess, options, guess_kind)
-        return resolved(solve(rod, length, start, end, guess, saveat, options, guess_kind), options)
+        return resolved(solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind), options)
 
     sol = resolved(sol, options)
     acceptable = lambda s: bool(s.ok) and int(s.instability_index) <= 0  # noqa: E731

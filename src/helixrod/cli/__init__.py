@@ -31,7 +31,7 @@ app = typer.Typer(add_completion=False, help="helixrod: elastic Kirchhoff rods a
 def _main(
     cache: bool = typer.Option(
         True, "--cache/--no-cache", envvar="HELIXROD_CACHE",
-        help="keep compiled programs on disk for later runs ($HELIXROD_CACHE_DIR, default ~/.cache/helixrod/jax; "
+        metavar="", help="keep compiled programs on disk for later runs ($HELIXROD_CACHE_DIR, default ~/.cache/helixrod/jax; "
         "safe to delete); HELIXROD_CACHE=0 turns the default off",
     ),
 ) -> None:

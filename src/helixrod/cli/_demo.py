@@ -20,7 +20,7 @@ from ._tweezer_fit import default_fix, fit_tweezer_data, print_tweezer_fit
 
 def demo(
     out: Path = typer.Option(Path("helixrod_demo"), help="directory for the figures"),
-    fits: bool = typer.Option(True, "--fits/--no-fits", help="also run the two example fits (a minute or two)"),
+    fits: bool = typer.Option(True, "--fits/--no-fits", metavar="", help="also run the two example fits (a minute or two)"),
 ) -> None:
     """Equilibria of a coupled, intrinsically curved rod (table, helix hyperboloid, kappa-tau
     atlas), then two fits to bundled synthetic datasets: the inverse spring problem on the

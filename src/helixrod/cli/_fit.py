@@ -25,7 +25,7 @@ def example_data_path() -> Path:
 def fit(
     data: Path = typer.Argument(..., help="CSV file (see helixrod.HelixData.from_csv)"),
     uhat: str = typer.Option(None, help="fixed intrinsic twist 'u1,u2,u3' (default 0,0,0)"),
-    fit_uhat: bool = typer.Option(False, "--fit-uhat", help="fit the intrinsic twist too"),
+    fit_uhat: bool = typer.Option(False, "--fit-uhat", metavar="", help="fit the intrinsic twist too"),
     fix: list[str] = typer.Option([], help="hold a parameter fixed, e.g. --fix K13=0 (repeatable)"),
     branch: str = typer.Option(
         None, help="register rule: nearest, stable or min-energy (default: nearest when every point has F and M, else stable; "
@@ -34,18 +34,18 @@ def fit(
     method: str = typer.Option("levenberg-marquardt", help="levenberg-marquardt, gauss-newton, lbfgs, adam"),
     n_starts: int = typer.Option(32, help="number of (vmapped) starts"),
     seed: int = typer.Option(0, help="seed of the random starts"),
-    relative_sigma: bool = typer.Option(False, "--relative-sigma", help="scale errors by the reduced chi2"),
+    relative_sigma: bool = typer.Option(False, "--relative-sigma", metavar="", help="scale errors by the reduced chi2"),
     errors_in_variables: bool = typer.Option(
         None, "--errors-in-variables/--no-errors-in-variables",
-        help="propagate the kappa, tau sigmas of the data into the force and moment residuals (default: on when the data carry them)",
+        metavar="", help="propagate the kappa, tau sigmas of the data into the force and moment residuals (default: on when the data carry them)",
     ),
     compare: bool = typer.Option(
-        False, "--compare", help="fit the model classes of --models side by side (AIC, BIC, likelihood-ratio tests)"
+        False, "--compare", metavar="", help="fit the model classes of --models side by side (AIC, BIC, likelihood-ratio tests)"
     ),
     models: str = typer.Option(
         ",".join(MODEL_CLASSES), help=f"with --compare: comma-separated classes among {', '.join(MODEL_CLASSES)}"
     ),
-    strict: bool = typer.Option(False, "--strict", help="an unknown CSV column is an error (default: ignored with a note)"),
+    strict: bool = typer.Option(False, "--strict", metavar="", help="an unknown CSV column is an error (default: ignored with a note)"),
     out: Path = typer.Option(None, help="write the fit (or the comparison) as JSON"),
     plot: Path = typer.Option(None, help="write observed vs predicted F and M (or the comparison) as PNG"),
 ) -> None:

@@ -19,7 +19,7 @@ def stability_command(
     uhat: str = typer.Option("0,1,0.3", help="intrinsic twist u1,u2,u3"),
     kappa: str = typer.Option("0.2:2:60", help="curvature axis start:stop:num"),
     tau: str = typer.Option("-1:1:60", help="torsion axis start:stop:num (write --tau=-1:1:60)"),
-    critical: bool = typer.Option(True, "--critical/--no-critical", help="also find each helix's critical length"),
+    critical: bool = typer.Option(True, "--critical/--no-critical", metavar="", help="also find each helix's critical length"),
     max_length: float | None = typer.Option(None, help="longest critical length looked for (default 4 L)"),
     pieces: int = typer.Option(16, help="pieces of each stability test (raise where the wrench is not resolved)"),
     slot: int = typer.Option(0, help="register slot of the figure (0: the global minimum of W on the circle)"),

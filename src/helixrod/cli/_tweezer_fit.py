@@ -136,7 +136,7 @@ def tweezer_fit_command(
         "example rod's K1 and K13=0, since tweezer curves do not determine all five stiffnesses; a --fix "
         "replaces this default (repeat K1=...,K13=0 to keep them)",
     ),
-    fit_offsets: bool = typer.Option(True, "--fit-offsets/--no-fit-offsets", help="fit one bead-height offset per molecule"),
+    fit_offsets: bool = typer.Option(True, "--fit-offsets/--no-fit-offsets", metavar="", help="fit one bead-height offset per molecule"),
     profile: list[str] = typer.Option(
         None,
         help="a free parameter whose 95 % profile-likelihood interval to print (repeatable; refits with it held "
@@ -144,7 +144,7 @@ def tweezer_fit_command(
     ),
     plot: Path = typer.Option(None, help="write the figure (plot.plot_tweezer_fit; PNG/PDF/SVG by suffix)"),
     out: Path = typer.Option(None, help="write the fit as JSON"),
-    strict: bool = typer.Option(False, "--strict", help="an unknown CSV column is an error (default: ignored with a note)"),
+    strict: bool = typer.Option(False, "--strict", metavar="", help="an unknown CSV column is an error (default: ignored with a note)"),
 ) -> None:
     """Fit the rod's stiffness (K2, K3, K23 by default), the bending persistence and the
     plectoneme twist persistence (and bead offsets) to tweezer curves: force-extension

@@ -171,13 +171,16 @@ def as_warm_start(rod, length, start: Clamped, end: EndCondition, guess, options
     return no_gradient(warm_start_of(rod, length, start, end, guess, options, guess_kind, ode_tolerances(options, float_dtype())))
 
 
-@jax.jit
-def _stability_of(rod, length, end: EndCondition, N, M0, xs, frames, result, options: BoundaryValueOptions):
-    """The stability fields of a solution on `options.stability_pieces` pieces, in a program
-    of its own (a finer stability test needs no new solve, and no compilation of one)."""
+def _stability_where_solved(rod, length, end: EndCondition, N, M0, xs, frames, result, options: BoundaryValueOptions):
+    """`stability` on `options.stability_pieces` pieces, undefined (index -1, NaN margin,
+    no push) where the solve did not succeed."""
     index, margin, push = stability(rod, length, end, N, M0, xs, frames, options)
     defined = result == RESULTS.successful
     return jnp.where(defined, index, -1), jnp.where(defined, margin, jnp.nan), jnp.where(defined, push, 0.0)
+
+
+# In a program of its own: a finer stability test needs no new solve, and no compilation of one.
+_stability_of = jax.jit(_stability_where_solved)
 
 
 def restability(rod, length, end: EndCondition, sol, options: BoundaryValueOptions):
@@ -256,10 +259,7 @@ def solve(rod, length, start: Clamped, end: EndCondition, guess, saveat, options
 
     out = _observe(args, options, N, M0, xs, frames, saveat, x_end[-1], frame_end[-1])
     if options.stability_pieces > 0:
-        index, margin, push = stability(rod, length, end, N, M0, xs, frames, options)
-        defined = result == RESULTS.successful
-        index, margin = jnp.where(defined, index, -1), jnp.where(defined, margin, jnp.nan)
-        push = jnp.where(defined, push, 0.0)
+        index, margin, push = _stability_where_solved(rod, length, end, N, M0, xs, frames, result, options)
     else:
         index, margin, push = jnp.asarray(-1, jnp.int32), jnp.asarray(jnp.nan, dtype), jnp.zeros(6, dtype)
     nan = lambda a: jnp.where(valid, a, jnp.nan)  # noqa: E731

@@ -4,6 +4,10 @@ against its peers, in one process:
 * the numpy peer (`_numpy_peer.numpy_helix_equilibria`): batched companion-matrix
   eigenvalues of the register quartic, two Newton steps, wrench and stability -- what a
   careful numpy user would write;
+* the numba peer (`_numba_peer.numba_helix_equilibria`): a hand-written compiled kernel of
+  the same job (vectorised passes, the inner pair solved only where it exists, early
+  exits), checked here against `helix_equilibria` point by point (register count and
+  stability everywhere, phi), on all cores and, with `--one-core`, on one;
 * scipy point by point: a sign scan of f(phi) on 64 intervals and `scipy.optimize.brentq`
   on each bracket, then the same wrench (on a subset: it is slow).
 
@@ -13,6 +17,7 @@ both cores; numpy's batched `eigvals` and scipy run on one).
 
     python benchmarks/bench_equilibria.py --quick     # 1e4 ... 1e6 points
     python benchmarks/bench_equilibria.py             # 1e4 ... 1e7 points
+    python benchmarks/bench_equilibria.py --quick --one-core   # pinned to one core
 
 Writes benchmarks/results/bench_equilibria.json and .png.
 """
@@ -32,12 +37,14 @@ import jax
 jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import mpmath  # noqa: E402
+import numba  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.optimize import brentq  # noqa: E402
 
 import helixrod as hr  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
+from _numba_peer import numba_helix_equilibria  # noqa: E402
 from _numpy_peer import numpy_helix_equilibria  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
@@ -53,7 +60,7 @@ def points(n, seed=0):
 
 @jax.jit
 def helixrod_fields(kappa, tau):
-    eq = hr.helix_equilibria(ROD, kappa, tau)
+    eq = hr.helix_equilibria(ROD, kappa, tau, fields=FIELDS)
     return {name: getattr(eq, name) for name in FIELDS}
 
 
@@ -149,7 +156,12 @@ def timed(fn, repeats):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="1e4 ... 1e6 points")
+    parser.add_argument("--one-core", action="store_true", help="pin the process (XLA and numba) to one core")
     opts = parser.parse_args()
+    if opts.one_core:
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+        numba.set_num_threads(1)
+    cores = len(os.sched_getaffinity(0))
     sizes = [10_000, 100_000, 1_000_000] if opts.quick else [10_000, 100_000, 1_000_000, 10_000_000]
     n_scipy = 300 if opts.quick else 2000
     n_ref = 100 if opts.quick else 400
@@ -157,7 +169,7 @@ def main():
     report = dict(
         machine=dict(platform=platform.platform(), cpus=os.cpu_count(), devices=[str(d) for d in jax.local_devices()],
                      jax=jax.__version__, numpy=np.__version__),
-        rod=ROD_ARGS, runs=[], accuracy={}, compile_s={},
+        rod=ROD_ARGS, runs=[], accuracy={}, compile_s={}, cores=cores, agreement={}, flops_per_point={},
     )
 
     # Accuracy against the 40-digit reference, on the same sample for every method.
@@ -165,10 +177,12 @@ def main():
     refs = mpmath_reference(k, t)
     eq = {name: np.asarray(x) for name, x in helixrod_fields(jnp.asarray(k), jnp.asarray(t)).items()}
     peer = numpy_helix_equilibria(**ROD_ARGS, kappa=k, tau=t)
+    hand = numba_helix_equilibria(**ROD_ARGS, kappa=k, tau=t)
     sp = scipy_pointwise(k, t)
     report["accuracy"] = acc = {
         "helixrod": errors_against(refs, [(eq["phi"][i][eq["valid"][i]], eq["force"][i][eq["valid"][i]]) for i in range(n_ref)]),
         "numpy": errors_against(refs, [(peer["phi"][i][peer["valid"][i]], peer["force"][i][peer["valid"][i]]) for i in range(n_ref)]),
+        "numba": errors_against(refs, [(hand["phi"][i][hand["valid"][i]], hand["force"][i][hand["valid"][i]]) for i in range(n_ref)]),
         "scipy": errors_against(refs, [(np.array([r[1] for r in rows]), np.array([r[2] for r in rows])) for rows in sp]),
     }
     print(f"accuracy against 40-digit mpmath on {n_ref} helices (max |dphi|, max relative dF):")
@@ -176,23 +190,41 @@ def main():
         print(f"  {name:>9}: {dphi:.1e}  {dforce:.1e}")
 
     # Compile time apart from run time, for each size (one executable per shape).
-    print(f"{'method':>9} {'points':>10} {'wall s':>9} {'cpu s':>8} {'points/s':>10} {'vs numpy':>9}")
+    print(f"{cores} core(s); {'method':>9} {'points':>10} {'wall s':>9} {'cpu s':>8} {'points/s':>10} {'vs numpy':>9} {'vs numba':>9}")
     for n in sizes:
         k, t = points(n)
         kj, tj = jnp.asarray(k), jnp.asarray(t)
         start = time.perf_counter()
         compiled = helixrod_fields.lower(kj, tj).compile()
         report["compile_s"][n] = time.perf_counter() - start
-        jax.block_until_ready(compiled(kj, tj))
-        # Best of enough calls to reach steady state at small sizes (a 1e4-point call takes
-        # ~1 ms; best of 3 varied by 40%).
-        wall, cpu = timed(lambda: jax.block_until_ready(compiled(kj, tj)), max(repeats, min(50, 300_000 // n)))
+        cost = compiled.cost_analysis()
+        cost = cost[0] if isinstance(cost, list) else cost
+        report["flops_per_point"][n] = cost.get("flops", float("nan")) / n
+        ours = {name: np.asarray(x) for name, x in compiled(kj, tj).items()}
+        hand = numba_helix_equilibria(**ROD_ARGS, kappa=k, tau=t)
+        both = ours["valid"] & hand["valid"]
+        report["agreement"][n] = agree = dict(
+            count_differences=int(np.sum(ours["valid"].sum(-1) != hand["valid"].sum(-1))),
+            stable_differences=int(np.sum(ours["stable"] != hand["stable"])),
+            max_dphi=float(np.max(angle_error(ours["phi"][both], hand["phi"][both]))),
+        )
+        # helixrod and the numba peer interleaved, best of enough calls to reach steady
+        # state (a 1e4-point call takes ~1 ms; the machine's noise is tens of percent).
+        rounds = max(5, min(50, 1_000_000 // n))
+        wall = cpu = hand_wall = hand_cpu = np.inf
+        for _ in range(rounds):
+            w, c = timed(lambda: jax.block_until_ready(compiled(kj, tj)), 1)
+            wall, cpu = min(wall, w), min(cpu, c)
+            w, c = timed(lambda: numba_helix_equilibria(**ROD_ARGS, kappa=k, tau=t), 1)
+            hand_wall, hand_cpu = min(hand_wall, w), min(hand_cpu, c)
         peer_wall, peer_cpu = timed(lambda: numpy_helix_equilibria(**ROD_ARGS, kappa=k, tau=t), 1 if n >= 10_000_000 else repeats)
-        for name, w, c in (("numpy", peer_wall, peer_cpu), ("helixrod", wall, cpu)):
+        for name, w, c in (("numpy", peer_wall, peer_cpu), ("numba", hand_wall, hand_cpu), ("helixrod", wall, cpu)):
             report["runs"].append(dict(method=name, points=n, wall_s=w, cpu_s=c, points_per_s=n / w,
-                                       speedup_vs_numpy=peer_wall / w, cpu_ratio_vs_numpy=peer_cpu / c))
-            print(f"{name:>9} {n:>10} {w:>9.4f} {c:>8.4f} {n / w:>10.3g} {peer_wall / w:>8.1f}x")
-        print(f"{'':>9} compile {report['compile_s'][n]:.2f} s; per-core ratio (CPU time) {peer_cpu / cpu:.1f}x")
+                                       speedup_vs_numpy=peer_wall / w, cpu_ratio_vs_numpy=peer_cpu / c,
+                                       speedup_vs_numba=hand_wall / w))
+            print(f"{'':>11} {name:>9} {n:>10} {w:>9.4f} {c:>8.4f} {n / w:>10.3g} {peer_wall / w:>8.1f}x {hand_wall / w:>8.2f}x")
+        print(f"{'':>11} compile {report['compile_s'][n]:.2f} s; per-core ratio to numpy (CPU time) {peer_cpu / cpu:.1f}x; "
+              f"XLA counts {report['flops_per_point'][n]:.0f} flops per point; against numba: {agree}")
     k, t = points(n_scipy, seed=2)
     wall, cpu = timed(lambda: scipy_pointwise(k, t), 1)
     numpy_rate = next(r["points_per_s"] for r in report["runs"] if r["method"] == "numpy" and r["points"] == sizes[-1])
@@ -200,9 +232,10 @@ def main():
                                speedup_vs_numpy=(n_scipy / wall) / numpy_rate))
     print(f"{'scipy':>9} {n_scipy:>10} {wall:>9.4f} {cpu:>8.4f} {n_scipy / wall:>10.3g} {(n_scipy / wall) / numpy_rate:>8.3f}x")
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "bench_equilibria.json").write_text(json.dumps(report, indent=2))
-    plot(report, RESULTS / "bench_equilibria.png")
-    print(f"wrote {RESULTS / 'bench_equilibria.json'} and .png")
+    stem = "bench_equilibria_one_core" if opts.one_core else "bench_equilibria"
+    (RESULTS / f"{stem}.json").write_text(json.dumps(report, indent=2))
+    plot(report, RESULTS / f"{stem}.png")
+    print(f"wrote {RESULTS / stem}.json and .png")
     return report
 
 
@@ -213,14 +246,14 @@ def plot(report, path):
 
     fig = Figure(figsize=(6.4, 4.2), layout="constrained")
     ax = fig.add_subplot()
-    for i, name in enumerate(("helixrod", "numpy", "scipy")):
+    for i, name in enumerate(("helixrod", "numpy", "numba", "scipy")):
         runs = [r for r in report["runs"] if r["method"] == name]
         dphi = report["accuracy"][name][0]
         ax.loglog([r["points"] for r in runs], [r["points_per_s"] for r in runs], "o-", color=OKABE_ITO[i],
                   label=f"{name} (max |dphi| {dphi:.0e})")
     ax.set_xlabel("helices (kappa, tau) per call")
     ax.set_ylabel("helices per second (every register, wrench, stability)")
-    ax.set_title("helix_equilibria throughput, float64, CPU")
+    ax.set_title(f"helix_equilibria throughput, float64, CPU ({report['cores']} core(s))")
     ax.legend(fontsize=8)
     ax.grid(True, which="both", alpha=0.3)
     fig.savefig(path, dpi=150)

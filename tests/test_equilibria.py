@@ -259,3 +259,37 @@ def test_eager_chunked_calls_compile_once(monkeypatch):
     listening[0] = False
     assert compiles == []
     np.testing.assert_array_equal(first.phi, second.phi)
+
+
+def test_fields_compute_only_what_is_asked(monkeypatch):
+    """`fields` returns the asked fields (and `valid`) with the values of the full result,
+    the others `None`, in one pass and in the chunked loop (chunks of 1024 here, so that
+    3000 points take three); an eager second call with the same fields compiles nothing;
+    unknown names are a ValueError naming the valid ones."""
+    from helixrod import _equilibria
+
+    rod = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
+    kappa, tau = jnp.linspace(0.1, 3.0, 3000), jnp.linspace(-3.0, 3.0, 3000)
+    full = hr.helix_equilibria(rod, kappa, tau)
+    asked = ("phi", "force", "stable", "continuum")
+    for chunk in (None, 1024):
+        if chunk:
+            monkeypatch.setattr(_equilibria, "_CPU_CHUNK", chunk)
+        some = hr.helix_equilibria(rod, kappa, tau, fields=asked)
+        for name in asked + ("valid",):
+            np.testing.assert_allclose(np.asarray(getattr(some, name), float), np.asarray(getattr(full, name), float),
+                                       rtol=1e-14, atol=1e-14)
+        assert some.moment is None and some.u is None and some.energy is None
+        np.testing.assert_array_equal(some.count, full.count)
+    compiles, listening = [], [False]
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda event, duration, **kw: compiles.append(event) if listening[0] and "backend_compile" in event else None
+    )
+    listening[0] = True
+    hr.helix_equilibria(rod, kappa, tau, fields=list(reversed(asked)))
+    listening[0] = False
+    assert compiles == []
+    one = hr.helix_equilibria(rod, 0.5, 1.5, fields="force")
+    assert one.force.shape == (4,) and one.phi is None
+    with pytest.raises(ValueError, match="unknown field.*'forces'.*valid fields"):
+        hr.helix_equilibria(rod, kappa, tau, fields=("forces",))

@@ -135,12 +135,35 @@ def test_fallback_agrees_with_fast_path(rng):
     A, B, C = (rng.normal(size=n) * np.exp(rng.uniform(-8, 8, n)) for _ in range(3))
     fast = [np.asarray(x) for x in jax.jit(_roots._solve)(A, B, C)]
     long = [np.asarray(x) for x in jax.jit(lambda a, b, c: _roots._solve(a, b, c, careful=True))(A, B, C)]
-    assert fast[-1].mean() > 0.99 and long[-1].all()
-    both = fast[3] & fast[-1][:, None]
+    # (..., converged, complete); four slots are always complete.
+    assert fast[-2].mean() > 0.99 and long[-2].all() and fast[-1].all()
+    both = fast[3] & fast[-2][:, None]
     assert np.max(np.where(both, angular_distance(fast[0], long[0]), 0)) < 1e-14
     merged = [np.asarray(x) for x in solve(A, B, C)]
     np.testing.assert_array_equal(merged[3], long[3])
     assert np.max(np.where(merged[3], angular_distance(merged[0], long[0]), 0)) < 1e-14
+
+
+def test_outer_stage_matches_the_four_slot_solve(rng):
+    """The first stage on a CPU solves only the two outer slots and marks the points that
+    have (or may have) an inner pair incomplete; its slots equal those of the four-slot
+    solve, and every point with a valid inner slot is marked, on random coefficients and
+    on exact zeros (the closed forms)."""
+    from helixrod import _roots
+
+    n = 3000
+    A, B, C = (rng.normal(size=n) * np.exp(rng.uniform(-4, 4, n)) for _ in range(3))
+    B[:300] = 0.0
+    C[300:600] = 0.0
+    outer = [np.asarray(x) for x in jax.jit(lambda a, b, c: _roots._solve(a, b, c, slots=(0, 1)))(A, B, C)]
+    full = [np.asarray(x) for x in jax.jit(_roots._solve)(A, B, C)]
+    phi, valid, complete = outer[0], outer[3], outer[-1]
+    assert phi.shape == (n, 2)
+    np.testing.assert_array_equal(valid, full[3][:, :2])
+    converged = outer[-2] & full[-2]
+    assert np.max(np.where(valid & converged[:, None], angular_distance(phi, full[0][:, :2]), 0)) < 1e-14
+    assert not np.any(complete & full[3][:, 2])
+    assert 0.05 < 1 - complete.mean() < 0.95
 
 
 def test_angle_against_mpmath(rng):

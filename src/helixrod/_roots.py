@@ -65,6 +65,8 @@ _MORE_ITERATIONS = 128
 # there are unconverged points), on a CPU and on an accelerator (where each batch is a
 # round of kernel launches).
 _FALLBACK_BATCH = 256
+# Points with an inner pair solved together on a CPU (stage 2 of `_solve_all`).
+_INNER_BATCH = 1024
 _ACCELERATOR_FALLBACK_BATCH = 16384
 # Convergence, relative to nu.  A step at round-off; or, in the asymptotic regime, a
 # last step small enough that the error it leaves -- about last^4 / before^3 for Halley,
@@ -89,9 +91,9 @@ _SIGN_U = (1.0, 1.0, -1.0, -1.0)
 
 
 def _slot(values, batch_ndim: int):
-    """A constant per-slot vector (trailing axis of 4) of the rank of the per-slot arrays
-    of a batch of `batch_ndim` dimensions (no implicit rank promotion)."""
-    return jnp.reshape(jnp.asarray(values), (1,) * batch_ndim + (4,))
+    """A constant per-slot vector (trailing axis of its length) of the rank of the per-slot
+    arrays of a batch of `batch_ndim` dimensions (no implicit rank promotion)."""
+    return jnp.reshape(jnp.asarray(values), (1,) * batch_ndim + (len(values),))
 
 
 def _converged(nu, last, before, order):
@@ -102,38 +104,33 @@ def _converged(nu, last, before, order):
     return (last <= _ROUNDOFF_TOL) | ((last <= _ASYMPTOTIC_TOL) & (left <= _LEFT_TOL))
 
 
-def _secular_solve(nu, aa, b2, c2, inner_sign, needed, careful):
-    """Solve psi(nu) = 1 for the four slots (axis -1 of `nu`) from starts left of every
-    root, given per-point $2a$, $b^2$, $c^2$ and the branch of the inner slots (+-1).
+def _secular_solve(nu, aa, Q2, P2, e, needed, careful):
+    """Solve psi(nu) = 1 for each slot, from starts left of every root.  Every argument but
+    `aa` ($2a$, per point) and `careful` is a tuple with one entry per slot: the start
+    `nu`, $Q^2$, $P^2$, the branch `e` (the Python float 1.0 on an outer slot, so that its
+    arithmetic folds away, or a per-point +-1) and whether the slot is `needed`.
+
+    The slots are separate arrays, not a trailing axis: XLA's CPU loops then run over
+    contiguous points with no broadcast index arithmetic, ~3x faster on the fast path.
 
     Fast path: `_FAST_ITERATIONS` Halley steps.  Careful path: Newton steps until every
-    `needed` slot has converged (at most `_MORE_ITERATIONS`).  Each step rebuilds the
-    per-slot coefficients from per-point ones, so that only nu travels between steps, and
-    ends with its division, so that XLA keeps nu itself in memory between steps: written
-    as nu + step, the sum nu_0 + step_1 + ... + step_k is refolded into every later step,
-    each then reading all earlier steps.  Returns nu and whether each slot converged."""
-    expand = lambda x: x[..., None]  # noqa: E731
+    `needed` slot has converged (at most `_MORE_ITERATIONS`).  Each step ends with its
+    division, so that XLA keeps nu itself in memory between steps: written as nu + step,
+    the sum nu_0 + step_1 + ... + step_k is refolded into every later step, each then
+    reading all earlier steps.  Returns nu and whether each slot converged (tuples)."""
 
-    def coefficients():
-        Q2 = jnp.where(_slot(_Q_IS_B, b2.ndim), expand(b2), expand(c2))
-        P2 = jnp.where(_slot(_Q_IS_B, b2.ndim), expand(c2), expand(b2))
-        e = jnp.where(_slot(_INNER, b2.ndim), expand(inner_sign), 1.0)
-        return Q2, P2, e
-
-    def newton(nu):
+    def newton(nu, Q2, P2, e):
         # psi - 1 = (nu d - sqrt N) / sqrt N with d = 2a + e nu, N = Q^2 d^2 + P^2 nu^2.
-        Q2, P2, e = coefficients()
-        d = expand(aa) + e * nu
+        d = aa + e * nu
         N = Q2 * d * d + P2 * nu * nu
         den = Q2 * d * d * d + e * P2 * nu * nu * nu
         return (nu * den + N * (jnp.sqrt(N) - nu * d)) / den
 
-    def halley(nu):
+    def halley(nu, Q2, P2, e):
         # With g = nu d, s = sqrt N: psi - 1 = H / s (H = g - s), psi' = D1 / (2 s N),
         # psi'' = D2 / (4 s N^2), and the Halley step -2 h psi' / (2 psi'^2 - h psi'')
         # is -4 N H D1 / (2 D1^2 - H D2).
-        Q2, P2, e = coefficients()
-        d = expand(aa) + e * nu
+        d = aa + e * nu
         N = Q2 * d * d + P2 * nu * nu
         dN = 2 * (e * Q2 * d + P2 * nu)
         g = nu * d
@@ -145,37 +142,46 @@ def _secular_solve(nu, aa, b2, c2, inner_sign, needed, careful):
         return (nu * den - 4 * N * H * D1) / den
 
     if not careful:
-        history = [nu]
-        for _ in range(_FAST_ITERATIONS):
-            history.append(halley(history[-1]))
-        nu, last, before = history[-1], history[-1] - history[-2], history[-2] - history[-3]
-        # Halley is not monotone: next to a tangency it can cross the separator to the
-        # other root of the pair.  A root of this slot's branch has psi' > 0 there.
-        Q2, P2, e = coefficients()
-        d = expand(aa) + e * nu
-        rising = Q2 * d * d * d + e * P2 * nu * nu * nu > 0
-        return nu, _converged(nu, last, before, 3) & rising & (nu > 0) & (d > 0)
+        roots, done = [], []
+        for nu_s, Q2_s, P2_s, e_s in zip(nu, Q2, P2, e):
+            history = [nu_s]
+            for _ in range(_FAST_ITERATIONS):
+                history.append(halley(history[-1], Q2_s, P2_s, e_s))
+            root, last, before = history[-1], history[-1] - history[-2], history[-2] - history[-3]
+            # Halley is not monotone: next to a tangency it can cross the separator to the
+            # other root of the pair.  A root of this slot's branch has psi' > 0 there.
+            d = aa + e_s * root
+            rising = Q2_s * d * d * d + e_s * P2_s * root * root * root > 0
+            roots.append(root)
+            done.append(_converged(root, last, before, 3) & rising & (root > 0) & (d > 0))
+        return tuple(roots), tuple(done)
 
     def active(nu, last, before):
-        return needed & ~_converged(nu, last, before, 2)
+        return tuple(n & ~_converged(*x, 2) for n, x in zip(needed, zip(nu, last, before)))
 
     def unfinished(carry):
         k, *state = carry
-        return (k < _MORE_ITERATIONS) & jnp.any(active(*state))
+        busy = active(*state)
+        return (k < _MORE_ITERATIONS) & functools.reduce(jnp.logical_or, (jnp.any(x) for x in busy))
 
     def body(carry):
         # Converged slots stop moving, so that a point's result does not depend on the
         # batch it is solved in.
         k, nu, last, before = carry
         moving = active(nu, last, before)
-        new = newton(nu)
-        return k + 1, jnp.where(moving, new, nu), jnp.where(moving, new - nu, last), jnp.where(moving, last, before)
+        new = tuple(newton(*x) for x in zip(nu, Q2, P2, e))
+        return (
+            k + 1,
+            tuple(jnp.where(m, n1, n0) for m, n1, n0 in zip(moving, new, nu)),
+            tuple(jnp.where(m, n1 - n0, l) for m, n1, n0, l in zip(moving, new, nu, last)),
+            tuple(jnp.where(m, l, b) for m, l, b in zip(moving, last, before)),
+        )
 
     # No steps yet: NaN, which no convergence test passes (an infinite step before the
     # first would make the asymptotic test pass after one step).
-    nan = jnp.full_like(nu, jnp.nan)
-    _, nu, last, before = jax.lax.while_loop(unfinished, body, (0, nu, nan, nan))
-    return nu, _converged(nu, last, before, 2)
+    nan = tuple(jnp.full_like(x, jnp.nan) for x in nu)
+    _, nu, last, before = jax.lax.while_loop(unfinished, body, (0, tuple(nu), nan, nan))
+    return nu, tuple(_converged(*x, 2) for x in zip(nu, last, before))
 
 
 def _unit(x, y):
@@ -185,9 +191,16 @@ def _unit(x, y):
     return x * factor, y * factor
 
 
-def _solve(A, B, C, careful=False):
-    """Primal solve.  Returns phi, cos phi, sin phi, valid (each ... x 4), continuum,
-    tangent (bool per slot: the slot is a double root), converged (per point)."""
+_ALL_SLOTS = tuple(range(NUM_SLOTS))
+
+
+def _solve(A, B, C, careful=False, slots=_ALL_SLOTS):
+    """Primal solve of the slots `slots` (a tuple of slot indices: all four, the outer
+    pair (0, 1) or the inner pair (2, 3); the careful path solves all four).  Returns phi,
+    cos phi, sin phi, valid (each ... x len(slots)), continuum, tangent (bool per slot: the
+    slot is a double root), converged (per point: the slots asked for, and whether the
+    inner pair exists) and complete (per point: no register outside the slots asked for;
+    with the outer slots only, False where an inner pair exists or may exist)."""
     dtype = jnp.result_type(A, B, C, float)
     A, B, C = (jnp.asarray(x, dtype) for x in (A, B, C))
     A, B, C = jnp.broadcast_arrays(A, B, C)
@@ -230,29 +243,46 @@ def _solve(A, B, C, careful=False):
         decided = jnp.abs(astroid) > _TANGENT_TOL
         tangent_point = jnp.zeros_like(pair)
 
-    Q = jnp.where(_slot(_Q_IS_B, a.ndim), b_it[..., None], c_it[..., None])
-    P = jnp.where(_slot(_Q_IS_B, a.ndim), c_it[..., None], b_it[..., None])
+    # Per slot: Q (the pole of the root), P, the branch e, and how (x, y) are read from
+    # (Q/nu, P/d); see the module docstring.
     inner_sign = jnp.where(pair, -1.0, 1.0)
-    e = jnp.where(_slot(_INNER, a.ndim), inner_sign[..., None], 1.0)
-    aa = 2 * a[..., None]
+    abs_b, abs_c = jnp.abs(b_it), jnp.abs(c_it)
+    aa = 2 * a
     # Starts left of every root.  Outer branches: |Q|, and sqrt(b^2 + c^2) - 2a (here with
     # a lower bound of the square root).  Inner: at the root P^2/(2a - nu)^2 exceeds its
     # value at nu = |Q|, so Q^2/nu^2 is below 1 - P^2/(2a - |Q|)^2.
-    absQ = jnp.abs(Q)
-    r_low = jnp.maximum(jnp.abs(b_it), jnp.abs(c_it)) + 0.41421356 * jnp.minimum(jnp.abs(b_it), jnp.abs(c_it))
-    inner_room = 1 - P * P / jnp.square(jnp.where(e > 0, 1.0, aa - absQ))
-    nu0 = jnp.where(e > 0, jnp.maximum(absQ, r_low[..., None] - aa), absQ / jnp.sqrt(jnp.maximum(inner_room, 1e-300)))
-    needed = ~(_slot(_INNER, a.ndim) & ~pair[..., None])
-    nu, done = _secular_solve(nu0, 2 * a, b2, c2, inner_sign, needed, careful)
-    converged = (jnp.all(done | ~needed, axis=-1) & decided) | factorable | continuum
+    r_low = jnp.maximum(abs_b, abs_c) + 0.41421356 * jnp.minimum(abs_b, abs_c)
+    Qs, Ps, es, starts, needed = [], [], [], [], []
+    for slot in slots:
+        Q, P = (b_it, c_it) if _Q_IS_B[slot] else (c_it, b_it)
+        absQ = abs_b if _Q_IS_B[slot] else abs_c
+        if _INNER[slot]:
+            e = inner_sign
+            inner_room = 1 - P * P / jnp.square(jnp.where(pair, aa - absQ, 1.0))
+            start = jnp.where(pair, absQ / jnp.sqrt(jnp.maximum(inner_room, 1e-300)), jnp.maximum(absQ, r_low - aa))
+            needed.append(pair)
+        else:
+            e = 1.0
+            start = jnp.maximum(absQ, r_low - aa)
+            needed.append(jnp.ones_like(pair))
+        Qs.append(Q), Ps.append(P), es.append(e), starts.append(start)
+    Q2s = tuple(b2 if _Q_IS_B[slot] else c2 for slot in slots)
+    P2s = tuple(c2 if _Q_IS_B[slot] else b2 for slot in slots)
+    nus, done = _secular_solve(tuple(starts), aa, Q2s, P2s, tuple(es), tuple(needed), careful)
+    all_done = functools.reduce(jnp.logical_and, (d | ~n for d, n in zip(done, needed)))
+    converged = (all_done & decided) | factorable | continuum
 
     # The register from nu: (x, y) from Q/nu and P/d, one division for both.
-    d = aa + e * nu
-    inv = 1 / (nu * d)
-    U = _slot(_SIGN_U, a.ndim) * Q * d * inv
-    V = -P * nu * inv
-    x, y = _unit(jnp.where(_slot(_SWAP, a.ndim), V, U), jnp.where(_slot(_SWAP, a.ndim), U, V))
-    tangent = _slot((False, False, True, False), a.ndim) & tangent_point[..., None]
+    xs, ys = [], []
+    for slot, nu, Q, P, e in zip(slots, nus, Qs, Ps, es):
+        d = aa + e * nu
+        inv = 1 / (nu * d)
+        U = _SIGN_U[slot] * Q * d * inv
+        V = -P * nu * inv
+        x, y = _unit(V, U) if _SWAP[slot] else _unit(U, V)
+        xs.append(x), ys.append(y)
+    x, y = jnp.stack(xs, axis=-1), jnp.stack(ys, axis=-1)
+    tangent = _slot(tuple(slot == 2 for slot in slots), a.ndim) & tangent_point[..., None]
     if careful:
         # A tangent register (slot 2) is the separator, direction -(cbrt b, cbrt c).
         tx, ty = -cb[..., None], -cc[..., None]
@@ -268,9 +298,12 @@ def _solve(A, B, C, careful=False):
         rotation = jnp.where((jnp.abs(rotation) <= _POLISH_LIMIT) & ~tangent, rotation, 0.0)
         x, y = _unit(x - rotation * y, y + rotation * x)
     always = jnp.ones_like(pair)
-    valid = jnp.stack([always, always, pair | tangent_point, pair], axis=-1)
+    per_slot_valid = (always, always, pair | tangent_point, pair)
+    valid = jnp.stack([per_slot_valid[slot] for slot in slots], axis=-1)
 
     f_cos, f_sin, f_valid = _factorable(a, b, c, sign_b, sign_c)
+    complete = jnp.where(factorable, ~f_valid[..., 2], ~pair & decided) if 2 not in slots else always
+    f_cos, f_sin, f_valid = (x[..., slots] for x in (f_cos, f_sin, f_valid))
     pick = factorable[..., None]
     cos_phi = jnp.where(pick, f_cos, x)
     sin_phi = jnp.where(pick, f_sin, y)
@@ -281,7 +314,7 @@ def _solve(A, B, C, careful=False):
     turn = turn[..., None]
     cos_phi, sin_phi = jnp.where(turn, -sin_phi, cos_phi), jnp.where(turn, cos_phi, sin_phi)
     # The continuum keeps one representative register, phi = 0, in slot 0.
-    only_first = jnp.arange(NUM_SLOTS) == 0
+    only_first = jnp.asarray([slot == 0 for slot in slots])
     cont = continuum[..., None]
     valid = jnp.where(cont, only_first, valid)
     tangent = tangent & ~cont
@@ -290,40 +323,87 @@ def _solve(A, B, C, careful=False):
     # Non-finite coefficients: no register (the finite stand-in solved above is masked, and
     # stays finite so that gradients through masked slots stay finite too).
     valid = valid & finite[..., None]
-    return _angle(cos_phi, sin_phi), cos_phi, sin_phi, valid, continuum & finite, tangent & valid, converged | ~finite
+    converged = converged | ~finite
+    complete = complete | continuum | ~finite
+    return _angle(cos_phi, sin_phi), cos_phi, sin_phi, valid, continuum & finite, tangent & valid, converged, complete
 
 
 def _solve_all(A, B, C):
-    """Fast path over the whole batch (`helix_equilibria` hands it cache-sized chunks on a
-    CPU), then the points it leaves unconverged re-solved by the careful path, gathered
-    from the whole batch `_FALLBACK_BATCH` at a time (so that their cost follows their
-    number)."""
+    """Every register of a batch, in up to three stages, each on the points the one before
+    left (gathered a batch at a time, so that their cost follows their number):
+
+    1. on a CPU, the fast path of the two outer registers of every point (helix_equilibria
+       hands it cache-sized chunks): about 95 % of the points of a typical rod have no
+       inner pair, and solving four slots everywhere would double the work;
+    2. the fast path of the inner pair on the points that have (or may have) one,
+       `_INNER_BATCH` at a time; on an accelerator, of all four slots on every point in
+       one pass;
+    3. the careful path on the points left unconverged, `_FALLBACK_BATCH` at a time."""
     A, B, C = jnp.broadcast_arrays(*(jnp.asarray(x, jnp.result_type(A, B, C, float)) for x in (A, B, C)))
     shape = A.shape
     n = A.size
     A, B, C = A.reshape(n), B.reshape(n), C.reshape(n)
-    *out, converged = _solve(A, B, C)
+    on_cpu = jax.default_backend() == "cpu"
+    if n > 0 and on_cpu:
+        *outer, converged, complete = _solve(A, B, C, slots=(0, 1))
+        out = tuple(_pad_slots(x) for x in outer[:4]) + (outer[4], _pad_slots(outer[5]), converged)
+        out = _resolve_where(~complete, out, _inner_stage, A, B, C, min(n, _INNER_BATCH))
+    else:
+        out = _solve(A, B, C)[:-1]
     if n > 0:
-        batch = min(n, _FALLBACK_BATCH if jax.default_backend() == "cpu" else _ACCELERATOR_FALLBACK_BATCH)
-        bad = ~converged
-        n_bad = jnp.sum(bad)
-        (order,) = jnp.nonzero(bad, size=n, fill_value=0)
-
-        def unfinished(carry):
-            return carry[0] * batch < n_bad
-
-        def resolve(carry):
-            k, out = carry
-            idx = jax.lax.dynamic_slice(order, (k * batch,), (batch,))
-            redo = _solve(A[idx], B[idx], C[idx], careful=True)[:-1]
-            # Slots past the last bad point hold index 0, or (at the end of `order`)
-            # repeat bad points: either way they rewrite a value with itself.
-            keep = bad[idx]
-            out = tuple(o.at[idx].set(jnp.where(_expand(keep, r), r, o[idx])) for o, r in zip(out, redo))
-            return k + 1, out
-
-        out = jax.lax.while_loop(unfinished, resolve, (0, tuple(out)))[1]
+        batch = min(n, _FALLBACK_BATCH if on_cpu else _ACCELERATOR_FALLBACK_BATCH)
+        *out, converged = out
+        out = _resolve_where(~converged, tuple(out), _careful_stage, A, B, C, batch)
+    else:
+        out = out[:-1]
     return tuple(x.reshape(shape + x.shape[1:]) for x in out)
+
+
+def _inner_stage(A, B, C, old):
+    """The outer slots of `old` (phi, cos, sin, valid, continuum, tangent, converged) with
+    the inner pair solved by the fast path."""
+    phi, cos_phi, sin_phi, valid, _, tangent, converged, _ = _solve(A, B, C, slots=(2, 3))
+    with_outer = lambda previous, inner: jnp.concatenate([previous[..., :2], inner], axis=-1)  # noqa: E731
+    o_phi, o_cos, o_sin, o_valid, o_continuum, o_tangent, o_converged = old
+    return (with_outer(o_phi, phi), with_outer(o_cos, cos_phi), with_outer(o_sin, sin_phi), with_outer(o_valid, valid),
+            o_continuum, with_outer(o_tangent, tangent), o_converged & converged)
+
+
+def _careful_stage(A, B, C, old):
+    """Every slot by the careful path (`old` is not needed)."""
+    return _solve(A, B, C, careful=True)[:-2]
+
+
+def _pad_slots(x):
+    """Per-slot values of the outer slots, padded to all four with unused slots (zeros,
+    flags False)."""
+    fill = jnp.zeros(x.shape[:-1] + (NUM_SLOTS - x.shape[-1],), x.dtype)
+    return jnp.concatenate([x, fill], axis=-1)
+
+
+def _resolve_where(mask, values, solver, A, B, C, batch):
+    """`values` (a tuple of per-point arrays, leading axis n) with the points of `mask`
+    replaced by `solver(A, B, C, values)` of those points, gathered `batch` at a time in
+    a while loop (as many rounds as there are masked points)."""
+    n = A.shape[0]
+    count = jnp.sum(mask)
+    (order,) = jnp.nonzero(mask, size=n, fill_value=0)
+
+    def unfinished(carry):
+        return carry[0] * batch < count
+
+    def resolve(carry):
+        k, values = carry
+        idx = jax.lax.dynamic_slice(order, (k * batch,), (batch,))
+        old = tuple(v[idx] for v in values)
+        redo = solver(A[idx], B[idx], C[idx], old)
+        # Slots past the last masked point hold index 0, or (at the end of `order`) repeat
+        # masked points: either way they rewrite a value with itself.
+        keep = mask[idx]
+        values = tuple(v.at[idx].set(jnp.where(_expand(keep, r), r, o)) for v, r, o in zip(values, redo, old))
+        return k + 1, values
+
+    return jax.lax.while_loop(unfinished, resolve, (0, values))[1]
 
 
 def _expand(mask, like):

@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 from scipy.integrate import solve_ivp  # noqa: E402
 
 import helixrod as hr  # noqa: E402
-from _timing import best_time  # noqa: E402
+from _timing import best_cpu_time, best_time  # noqa: E402
 
 ROD = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
 RESULTS = pathlib.Path(__file__).parent / "results"
@@ -51,9 +51,9 @@ def problems():
     return [helix, perturbed]
 
 
-def scipy_rhs():
-    K = np.asarray(ROD.K)
-    uhat = np.asarray(ROD.uhat)
+def scipy_rhs(rod=ROD):
+    K = np.asarray(rod.K)
+    uhat = np.asarray(rod.uhat)
     K_inv = np.linalg.inv(K)
     e3 = np.array([0.0, 0.0, 1.0])
 
@@ -192,6 +192,55 @@ def plot(results, path):
     fig.savefig(path, dpi=120)
 
 
+def saved_points(problem, count, repeats):
+    """The cost of saving: `solve_static` at its defaults saving the frame, centreline and
+    wrench at `count` evenly spaced points (the continuous extension of the Lie-group
+    steps) against saving at the end only, and scipy DOP853 (tol 1e-10) with and without
+    `t_eval` (its dense output); errors at the saved points against a DOP853 reference
+    at tol 1e-14.  CPU times (best of `repeats`)."""
+    length, rod = problem["length"], problem.get("rod", ROD)
+    rhs = scipy_rhs(rod)
+    ts = np.linspace(0.0, length, count)
+    y0 = np.concatenate([problem["n0"], problem["m0"], problem["frame0"].ravel(), problem["x0"]])
+    ref = solve_ivp(rhs, (0.0, length), y0, method="DOP853", rtol=1e-14, atol=1e-14, t_eval=ts).y.T
+    args = [jnp.asarray(problem[k]) for k in ("n0", "m0", "frame0", "x0")]
+    out = {}
+    for label, saveat in (("end", None), ("saved", jnp.asarray(ts))):
+
+        @jax.jit
+        def run(n0, m0, frame0, x0, saveat=saveat):
+            sol = hr.solve_static(rod, n0, m0, length, frame0=frame0, x0=x0, saveat=saveat,
+                                  outputs=("wrench", "frame", "centreline"))
+            return sol.n, sol.frame, sol.x
+
+        n, frame, x = run(*args)
+        rows = ref if saveat is not None else ref[-1:]
+        err = float(max(np.abs(np.asarray(n) - rows[:, :3]).max(), np.abs(np.asarray(frame).reshape(-1, 9) - rows[:, 6:15]).max(),
+                        np.abs(np.asarray(x) - rows[:, 15:]).max()))
+        out[label] = dict(cpu_s=best_cpu_time(lambda: run(*args), repeats), error=err)
+    for label, t_eval in (("scipy_end", None), ("scipy_saved", ts)):
+        solve = lambda t_eval=t_eval: solve_ivp(rhs, (0.0, length), y0, method="DOP853", rtol=1e-10, atol=1e-10, t_eval=t_eval).y  # noqa: E731
+        y = solve().T
+        rows = ref if t_eval is not None else ref[-1:]
+        err = float(max(np.abs(y[-rows.shape[0]:, :3] - rows[:, :3]).max(), np.abs(y[-rows.shape[0]:, 6:] - rows[:, 6:]).max()))
+        out[label] = dict(cpu_s=best_cpu_time(solve, max(1, repeats // 3)), error=err)
+    out.update(count=count, saved_over_end=out["saved"]["cpu_s"] / out["end"]["cpu_s"],
+               scipy_saved_over_end=out["scipy_saved"]["cpu_s"] / out["scipy_end"]["cpu_s"],
+               speedup_vs_scipy=out["scipy_saved"]["cpu_s"] / out["saved"]["cpu_s"])
+    print(f"  {count} saved points: {out['saved']['cpu_s'] * 1e3:.3f} ms (err {out['saved']['error']:.1e}) against "
+          f"{out['end']['cpu_s'] * 1e3:.3f} ms at the end only (err {out['end']['error']:.1e}): {out['saved_over_end']:.2f}x; "
+          f"scipy DOP853 {out['scipy_saved']['cpu_s'] * 1e3:.1f} ms (err {out['scipy_saved']['error']:.1e}), "
+          f"{out['scipy_saved_over_end']:.2f}x its end-only solve; helixrod {out['speedup_vs_scipy']:.0f}x faster")
+    return out
+
+
+def planar_elastica():
+    """A planar elastica (bending about d2 only, force in the d1-d3 plane), L = 5."""
+    rod = hr.Rod(1.0, 1.5, 0.8)
+    return dict(name="planar elastica, L = 5", rod=rod, n0=np.array([0.5, 0.0, -1.0]), m0=np.array([0.0, 0.8, 0.0]),
+                frame0=np.eye(3), x0=np.zeros(3), length=5.0)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--quick", action="store_true", help="fewer tolerances, solvers and batch members")
@@ -220,10 +269,14 @@ def main():
             f = h["fastest_diffrax"]
             print(f"  fastest diffrax run at that error: {f['run']['method']} tol {f['run']['tol']:.0e}, "
                   f"{f['run']['wall_s'] * 1e3:.2f} ms: {f['speedup']:.0f}x faster")
+    saves = {}
+    for problem in (problems()[1], planar_elastica()):
+        print(f"saved points ({problem['name']})")
+        saves[problem["name"]] = saved_points(problem, 201, 20 if args.quick else 50)
     print("batched (non-helical, L = 20)")
     batch = batched(problems()[1], 200 if args.quick else 1000, repeats, 1e-8)
     RESULTS.mkdir(exist_ok=True)
-    payload = dict(device=str(jax.devices()[0]), quick=args.quick, results=results, headline=headlines, batched=batch,
+    payload = dict(device=str(jax.devices()[0]), quick=args.quick, results=results, headline=headlines, batched=batch, saved=saves,
                    note="2 shared CPU cores: timings are noisy and pessimistic")
     (RESULTS / "bench_kirchhoff.json").write_text(json.dumps(payload, indent=1))
     plot(results, RESULTS / "bench_kirchhoff.png")

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import M1, N1, ROT1, solve_fixed
+from helpers import KIRCHHOFF_ROD, M1, N1, ROT1, solve_fixed
 from scipy.spatial.transform import Rotation
 
 import helixrod as hr
@@ -105,3 +105,71 @@ def test_convergence_order(solver, counts, order):
         errors.append(max(float(jnp.abs(sol.x - ref.x).max()), float(jnp.abs(sol.frame - ref.frame).max())))
     slope = -np.polyfit(np.log(counts), np.log(errors), 1)[0]
     assert order - 0.4 < slope < order + 1.0, (slope, errors)
+
+
+def _scipy_state(length):
+    """The state at arc length `length` from (N1, M1, ROT1, 0) by scipy's DOP853 at
+    1e-14 (an independent right-hand side: tests/test_kirchhoff.py's)."""
+    from test_kirchhoff import scipy_reference
+
+    n, m, D, x = scipy_reference(KIRCHHOFF_ROD, N1, M1, ROT1, np.zeros(3), np.array([0.0, length]), rtol=1e-14)
+    return n[-1], m[-1], D[-1], x[-1]
+
+
+@pytest.mark.parametrize(
+    "solver, steps, slope",
+    [(hr.CommutatorFreeRK4(), [0.4, 0.2, 0.1, 0.05], 4), (hr.MuntheKaasRK(diffrax.Dopri8()), [0.8, 0.6, 0.45, 0.34], 6)],
+)
+def test_dense_output_order(solver, steps, slope):
+    """The continuous extension of one step (`LieGroupInterpolation`) inside the step, at
+    r = 0.37, against scipy: its local error falls as h^4 for CF4 (an order-3 extension)
+    and as h^6 for Munthe-Kaas on Dopri8 (diffrax's Dopri8 interpolation, of the same order
+    on a plain ODE).  At r = 1 it meets the step's own end: to O(h^5) for CF4 (the two
+    exponentials of the step against one), to round-off for Munthe-Kaas."""
+    from helixrod._kirchhoff import _body_velocity
+    from helixrod._lie import BodyVelocityTerm, LieGroupInterpolation, RodState
+
+    term = BodyVelocityTerm(_body_velocity)
+    y0 = RodState(jnp.asarray(N1), jnp.asarray(M1), jnp.asarray(ROT1), jnp.zeros(3))
+
+    @jax.jit
+    def dense(h, r):
+        state = solver.init(term, 0.0, h, y0, KIRCHHOFF_ROD)
+        y1, _, info, _, _ = solver.step(term, 0.0, h, y0, KIRCHHOFF_ROD, state, True)
+        return LieGroupInterpolation(t0=jnp.zeros_like(h), t1=h, **info).evaluate(r * h), y1
+
+    errors, gaps = [], []
+    for h in steps:
+        y, _ = dense(jnp.asarray(h), 0.37)
+        n, m, D, x = _scipy_state(0.37 * h)
+        errors.append(max(np.abs(y.n - n).max(), np.abs(y.m - m).max(), np.abs(y.frame - D).max(), np.abs(y.x - x).max()))
+        end, y1 = dense(jnp.asarray(h), 1.0)
+        gaps.append(max(float(jnp.abs(end.frame - y1.frame).max()), float(jnp.abs(end.x - y1.x).max())))
+        gram = jnp.einsum("ji,jk->ik", y.frame, y.frame) - jnp.eye(3)
+        assert float(jnp.abs(gram).max()) < 1e-14
+        # The group action conserves |n|^2 and m.n exactly: the interpolant does too.
+        np.testing.assert_allclose([y.n @ y.n, y.m @ y.n], [N1 @ N1, M1 @ N1], rtol=1e-13)
+    fitted = np.polyfit(np.log(steps), np.log(errors), 1)[0]
+    assert slope - 0.3 < fitted < slope + 0.6, (fitted, errors)
+    if slope == 4:
+        assert np.polyfit(np.log(steps), np.log(gaps), 1)[0] > 4.5, gaps
+    else:
+        assert max(gaps) < 1e-13, gaps
+
+
+def test_saved_points_exact_on_a_helix_between_steps():
+    """Saved points between steps are exact on a uniform helix (the twist is constant):
+    three fixed CF4 steps over two turns, saved at 40 points, give the closed-form frame and
+    centreline; a solver without a continuous extension refuses fixed steps with saves."""
+    from helpers import FRAME0, KIRCHHOFF_EQ, M0, N0, X0
+
+    kappa, tau = 1.0, 0.5
+    length = 2 * 2 * np.pi / np.hypot(kappa, tau)
+    s = jnp.linspace(0.0, length, 40)
+    sol = hr.solve_static(KIRCHHOFF_ROD, N0, M0, length, frame0=FRAME0, x0=X0, saveat=s, steps=3,
+                          outputs=("frame", "centreline"), solver=hr.CommutatorFreeRK4())
+    np.testing.assert_allclose(sol.frame, hr.helix_frame(kappa, tau, KIRCHHOFF_EQ.phi[0], s), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sol.x, hr.helix_centreline(kappa, tau, s), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sol.n, jnp.broadcast_to(N0, sol.n.shape), rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="no continuous extension"):
+        hr.solve_static(KIRCHHOFF_ROD, N0, M0, length, saveat=s, steps=3, solver=hr.MuntheKaasRK(diffrax.Tsit5()))

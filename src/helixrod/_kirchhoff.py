@@ -203,6 +203,7 @@ def solve_static(
     frame0: ArrayLike | None = None,
     x0: ArrayLike | None = None,
     saveat: ArrayLike | None = None,
+    interpolate: bool = True,
     outputs: str | Sequence[str] = ("wrench",),
     solver: diffrax.AbstractSolver | None = None,
     rtol: float | None = None,
@@ -224,6 +225,12 @@ def solve_static(
       identity); `x0`: initial centreline point (default origin).
     - `saveat`: `None` saves at $s$ = `length` only (save axis of length 1); an
       increasing array of $s$ in $[0, \\mathrm{length}]$ saves there.
+    - `interpolate`: take the saved points from the solver's continuous extension
+      (default; `LieGroupInterpolation` for the geometric solvers: saved frames stay
+      rotations, exact on uniform helices), at the cost of dense output rather than of a
+      step per saved point; `False` makes steps end on every saved point instead, so that
+      the saved values carry the steps' accuracy and their derivatives are those of step
+      values (the interpolant of the default solver is of order 5, below its order 8).
     - `outputs`: names from `("wrench", "frame", "centreline")`. Only what is named is
       integrated and stored: the wrench alone is a 6-dimensional system; the centreline
       needs (and integrates, without storing) the frame.
@@ -305,19 +312,23 @@ def solve_static(
         ts = jnp.where(valid, ts, jnp.linspace(0.0, 1.0, ts.shape[0], dtype=dtype))
         save = diffrax.SaveAt(ts=ts)
 
+    # The geometric solvers' continuous extension (`LieGroupInterpolation`) keeps saved
+    # frames on the group; where it is only the order-1 fallback, steps land on the save
+    # points instead.
+    dense = interpolate and (not geometric or solver.dense_output)
     if steps is not None:
-        if geometric and saveat is not None:
+        if not dense and saveat is not None:
             raise ValueError(
-                "solve_static: with fixed `steps` the geometric solver saves only at s = length "
-                "(its frames between steps would be interpolated); use the adaptive mode"
+                "solve_static: with fixed `steps` and interpolate=False, or a solver with no "
+                "continuous extension, only s = length can be saved; use the adaptive mode, "
+                "interpolate=True or MuntheKaasRK(diffrax.Dopri8())"
             )
         controller = diffrax.ConstantStepSize()
         dt0 = length / steps
         if isinstance(steps, int):
             max_steps = max(max_steps, steps)
     else:
-        # The geometric solver's saved frames must be step values, not interpolants.
-        step_ts = ts if (geometric and ts is not None) else None
+        step_ts = None if dense else ts
         dtmax = _stability_step(rod, n0, m0) if geometric else None
         # Array tolerances: a new tolerance does not recompile.
         controller = diffrax.PIDController(

@@ -144,7 +144,7 @@ def _observe(args: ShootingArgs, options: BoundaryValueOptions, N, M0, xs, frame
         local = jnp.clip(saveat - j * piece, 0.0, piece)
         sol = options.integrate(
             args.rod, frames[j].T @ N, frames[j].T @ moments[j], piece, args.ode_tol, frame0=frames[j], x0=xs[j],
-            saveat=local,
+            saveat=local, interpolate=False,  # step values: the solve's accuracy, and their derivatives
         )
         return sol.x, sol.frame, sol.n, sol.m
 

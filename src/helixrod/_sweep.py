@@ -12,7 +12,6 @@ from __future__ import annotations
 import collections.abc
 import functools
 import json
-import sys
 import zipfile
 from collections.abc import Callable, Mapping, Sequence
 
@@ -23,6 +22,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._equilibria import helix_equilibria
 from ._misc import write_atomically
+from ._progress import ProgressArgument, check_progress, progress_bar
 from ._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
 
 #: Per-register fields (shape ``(len(kappa), len(tau), 4)``), with their numpy dtypes.
@@ -173,44 +173,28 @@ def _stream(point_fn, rod, kappa, tau, trailing: Mapping, chunk_size, progress, 
     }
     flat = {name: a.reshape((total,) + a.shape[2:]) for name, a in out.items()}
     starts = range(0, total, chunk)
-    show = len(starts) > 1 and sys.stdout.isatty() if progress is None else bool(progress)
-    bar = _progress_bar(description, total) if show else None
 
-    def collect(start, result):
+    def collect(start, result, report):
         stop = min(start + chunk, total)
         for name, a in result.items():
             flat[name][start:stop] = np.asarray(a)[: stop - start]
-        if bar is not None:
-            bar[0].update(bar[1], advance=stop - start)
+        report.advance(stop - start)
 
-    try:
+    with progress_bar(description, total, progress, owner=description, auto=len(starts) > 1) as report:
         pending = None
         for start in starts:
             # Dispatch the next chunk before copying out the last: device and host overlap.
             result = fn(*args, jnp.asarray(start, index_dtype))
             if pending is not None:
-                collect(*pending)
+                collect(*pending, report)
             pending = (start, result)
-        collect(*pending)
-    finally:
-        if bar is not None:
-            bar[0].stop()
+        collect(*pending, report)
     return out
 
 
 def _padded(axis: np.ndarray) -> jax.Array:
     size = max(256, 1 << (axis.size - 1).bit_length())
     return jnp.asarray(np.pad(axis, (0, size - axis.size), mode="edge"))
-
-
-def _progress_bar(description, total):
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-    progress = Progress(
-        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn()
-    )
-    progress.start()
-    return progress, progress.add_task(description, total=total)
 
 
 class SweepResult(collections.abc.Mapping):
@@ -256,7 +240,7 @@ def sweep(
     *,
     fields: Sequence[str] = DEFAULT_FIELDS,
     chunk_size: int | None = None,
-    progress: bool | None = None,
+    progress: ProgressArgument = None,
     devices: Sequence[jax.Device] | None = None,
 ) -> SweepResult:
     """Every uniform helical equilibrium of `rod` over the grid `kappa` x `tau`.
@@ -283,8 +267,11 @@ def sweep(
     **Streaming.**  The grid is evaluated in chunks of `chunk_size` points (default
     65536 per CPU device, 4194304 per accelerator), one compiled function reused for every chunk (the last is padded
     by repeating the final point, and trimmed), so memory is the output arrays plus one
-    chunk of temporaries.  A rich progress bar is shown when there is more than one chunk
-    and stdout is a terminal; `progress=True/False` forces it on or off.
+    chunk of temporaries.
+
+    **Progress.**  `progress=None` (default) shows a rich progress bar when there is more
+    than one chunk and stdout is a terminal; `True`/`False` force it on or off; a callable
+    is called as `progress(done, total)` (grid points) after each chunk, instead of a bar.
 
     **Devices.**  Each chunk is split evenly over `devices` (default
     `jax.local_devices()`) with a `NamedSharding` over a 1-D mesh; every device builds its
@@ -315,6 +302,7 @@ def sweep(
     """
     fields = _check_fields(fields)
     _check_rod(rod)
+    check_progress(progress, "sweep")
     kappa = _check_axis("kappa", kappa)
     tau = _check_axis("tau", tau)
     trailing = {
@@ -476,7 +464,7 @@ def sensitivity(
     wrt: Sequence[str] = ("K1", "K2", "K3", "K13", "K23", "uhat"),
     *,
     chunk_size: int | None = None,
-    progress: bool | None = None,
+    progress: ProgressArgument = None,
     devices: Sequence[jax.Device] | None = None,
 ) -> Sensitivity:
     """Derivatives of the axial force, axial moment and register of every equilibrium on
@@ -491,10 +479,12 @@ def sensitivity(
     infinite at a tangent (fold) register.  Also returns the elasticities
     $(\\theta/F)\\,\\partial F/\\partial\\theta$ and $(\\theta/M)\\,\\partial M/\\partial\\theta$
     (infinite where $F$ or $M$ vanishes, zero for a parameter that is zero).  Invalid
-    slots are NaN.  Streams and shards exactly as `sweep`.  Returns a `Sensitivity`.
+    slots are NaN.  Streams, shards and shows `progress` exactly as `sweep`.  Returns a
+    `Sensitivity`.
     """
     wrt = _check_wrt(wrt)
     _check_rod(rod, "sensitivity")
+    check_progress(progress, "sensitivity")
     kappa = _check_axis("kappa", kappa, "sensitivity")
     tau = _check_axis("tau", tau, "sensitivity")
     p = len(wrt)

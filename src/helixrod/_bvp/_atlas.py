@@ -64,6 +64,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._equilibria import helix_equilibria
 from .._misc import check_integer, finite_scalar, float_dtype, solve_small
 from .._lie import hat, so3_exp
+from .._progress import MAX_BATCHES, ProgressArgument, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import check_one_rod
 from ._ends import CLAMPED, end_condition
 from ._stability import EXTENSIBILITY, PIECE_RESOLUTION, assess, piece_hessian, stiffness_range
@@ -349,29 +350,90 @@ def _clamped_helix_stability(rod, n, m, length, pieces: int):
     return index, margin
 
 
-@eqx.filter_jit
-def _atlas(rod, kappa, tau, length, pieces: int, chunk_size: int):
+def _registers(rod, kappa, tau):
+    """The registers of the grid: `valid`, `stable` (`batch + (4,)`) and the body wrenches
+    `n`, `m` of every helix, flat `(4 * kappa.size, 3)` (zero where not valid)."""
     eq = helix_equilibria(rod, kappa, tau)
-    shape = eq.valid.shape
     n = jnp.where(eq.valid[..., None], eq.n, 0.0).reshape(-1, 3)
     m = jnp.where(eq.valid[..., None], eq.m, 0.0).reshape(-1, 3)
-    index, margin = jax.lax.map(lambda w: _clamped_helix_stability(rod, *w, length, pieces), (n, m), batch_size=chunk_size)
-    valid = eq.valid.reshape(-1)
-    index = jnp.where(valid, index, -1).reshape(shape)
-    margin = jnp.where(valid, margin, jnp.nan).reshape(shape)
-    return eq.valid, eq.stable, index, margin, n, m
+    return eq.valid, eq.stable, n, m
+
+
+def _indices(rod, n, m, length, pieces: int, chunk_size: int):
+    return jax.lax.map(lambda w: _clamped_helix_stability(rod, *w, length, pieces), (n, m), batch_size=chunk_size)
+
+
+def _critical_points(rod, n, m, max_length, bisections: int, chunk_size: int):
+    return jax.lax.map(lambda w: _critical_point(rod, *w, max_length, bisections), (n, m), batch_size=chunk_size)
 
 
 @eqx.filter_jit
-def _critical_lengths(rod, n, m, valid, max_length, bisections: int, chunk_size: int):
+def _atlas(rod, kappa, tau, length, pieces: int, chunk_size: int):
+    valid, stable, n, m = _registers(rod, kappa, tau)
+    index, margin = _indices(rod, n, m, length, pieces, chunk_size)
+    return valid, stable, index, margin, n, m
+
+
+@eqx.filter_jit
+def _critical_lengths(rod, n, m, max_length, bisections: int, chunk_size: int):
     # A program of its own: compiled into `_atlas`, beside the batched eigh of the index, it
     # deadlocked XLA's CPU thread pool (jaxlib 0.10.2, 2 cores, concurrency-optimised
     # scheduler) on a 10 x 10 grid; apart, neither does.  So no LAPACK call in here either.
-    critical, kind, mode = jax.lax.map(lambda w: _critical_point(rod, *w, max_length, bisections), (n, m), batch_size=chunk_size)
-    critical = jnp.where(valid, critical.reshape(valid.shape), jnp.nan)
-    kind = jnp.where(valid, kind.reshape(valid.shape), -1)
-    mode = jnp.where(valid[..., None], mode.reshape(valid.shape + (6,)), jnp.nan)
-    return critical, kind, mode
+    return _critical_points(rod, n, m, max_length, bisections, chunk_size)
+
+
+# While progress is shown, the helices are tested in host-side batches of these programs
+# (the same two programs apart, for the same reason).
+_registers_jit = eqx.filter_jit(_registers)
+_indices_batch = eqx.filter_jit(_indices)
+_critical_batch = eqx.filter_jit(_critical_points)
+
+
+def _test_helices(rod, kappa, tau, length, max_length, critical_length: bool, bisections, pieces, chunk_size, report):
+    """valid, pointwise stable, index, margin, critical length, type and mode of the grid
+    (`kappa`, `tau` of one shape); in one call of each program, or, where `report` is shown,
+    in host-side batches of helices, advancing it after each.
+
+    A batch is a whole number of the `lax.map` batches of `chunk_size` helices of the single
+    call, and the helices past the last whole one a batch of their own: every helix is then
+    tested in a vmap of the same width either way, so the results are the same bit for bit
+    (the width changes the rounding of the stability margin, by 1e-8 relative, measured)."""
+    if not report.shown:
+        valid, pointwise, index, margin, n, m = _atlas(rod, kappa, tau, length, pieces, chunk_size)
+        if critical_length:
+            critical, kind, mode = _critical_lengths(rod, n, m, max_length, bisections, chunk_size)
+    else:
+        valid, pointwise, n, m = _registers_jit(rod, kappa, tau)
+
+        def test(_, wrench):
+            out = _indices_batch(rod, *wrench, length, pieces, chunk_size)
+            if critical_length:
+                out += _critical_batch(rod, *wrench, max_length, bisections, chunk_size)
+            return None, out
+
+        whole = n.shape[0] // chunk_size * chunk_size
+        parts = []
+        if whole:  # one batch fewer than the most: the leftover helices are the last
+            size = batch_size(whole // chunk_size, MAX_BATCHES - 1) * chunk_size
+            parts.append(scan_in_batches(test, None, (n[:whole], m[:whole]), whole, size, report)[1])
+        if whole < n.shape[0]:
+            parts.append(scan_in_batches(test, None, (n[whole:], m[whole:]), n.shape[0] - whole, n.shape[0] - whole, report)[1])
+        out = jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
+        index, margin = out[:2]
+        if critical_length:
+            critical, kind, mode = out[2:]
+    flat = valid.reshape(-1)
+    index = jnp.where(flat, index, -1).reshape(valid.shape)
+    margin = jnp.where(flat, margin, jnp.nan).reshape(valid.shape)
+    if critical_length:
+        critical = jnp.where(valid, critical.reshape(valid.shape), jnp.nan)
+        kind = jnp.where(valid, kind.reshape(valid.shape), -1)
+        mode = jnp.where(valid[..., None], mode.reshape(valid.shape + (6,)), jnp.nan)
+    else:
+        critical = jnp.full(valid.shape, jnp.nan, length.dtype)
+        kind = jnp.where(valid, NONE, -1).astype(jnp.int32)
+        mode = jnp.full(valid.shape + (6,), jnp.nan, length.dtype)
+    return valid, pointwise, index, margin, critical, kind, mode
 
 
 def stability_atlas(
@@ -385,6 +447,7 @@ def stability_atlas(
     bisections: int = 24,
     pieces: int = 16,
     chunk_size: int = 256,
+    progress: ProgressArgument = None,
 ) -> StabilityAtlas:
     """Stability of every uniform helix $(\\kappa, \\tau)$ (all registers) when a piece of
     length `length` of it is held between clamps by its own wrench (module docstring).
@@ -399,6 +462,13 @@ def stability_atlas(
     - `pieces`: pieces of each test (`BoundaryValueOptions.stability_pieces`); where they do
       not resolve a helix's wrench its index is -1: raise them.
     - `chunk_size`: helices tested at once (memory).
+    - `progress`: `None` (default) shows a rich progress bar of the helices tested when
+      stdout is a terminal and there is more than one chunk, `True`/`False` force it on or
+      off, and a callable is called as `progress(done, total)` instead of a bar (`total`
+      = 4 `kappa.size` after broadcasting: every register of every point).  While progress
+      is shown the helices are tested in up to 20 host-side batches of whole chunks (one
+      compiled program, the last batch padded) and one of the helices left over, with the
+      same results bit for bit; else in one call.
 
     Returns a `StabilityAtlas`.  Compiled once per grid shape and settings.
 
@@ -427,13 +497,14 @@ def stability_atlas(
     bisections = check_integer(bisections, "bisections", owner)
     pieces = check_integer(pieces, "pieces", owner)
     chunk_size = check_integer(chunk_size, "chunk_size", owner)
-    valid, pointwise, index, margin, n, m = _atlas(rod, kappa, tau, jnp.asarray(length, dtype), pieces, chunk_size)
-    if critical_length:
-        critical, kind, mode = _critical_lengths(rod, n, m, valid, jnp.asarray(max_length, dtype), bisections, chunk_size)
-    else:
-        critical = jnp.full(valid.shape, jnp.nan, dtype)
-        kind = jnp.where(valid, NONE, -1).astype(jnp.int32)
-        mode = jnp.full(valid.shape + (6,), jnp.nan, dtype)
+    check_progress(progress, owner)
+    helices = 4 * kappa.size
+    with progress_bar(owner, helices, progress, owner=owner, auto=helices > chunk_size) as report:
+        fields = _test_helices(
+            rod, kappa, tau, jnp.asarray(length, dtype), jnp.asarray(max_length, dtype), bool(critical_length),
+            bisections, pieces, chunk_size, report,
+        )
+    valid, pointwise, index, margin, critical, kind, mode = fields
     return StabilityAtlas(
         kappa=kappa, tau=tau, length=jnp.asarray(length, dtype), max_length=jnp.asarray(max_length, dtype),
         valid=valid, pointwise_stable=pointwise, instability_index=index, stability_margin=margin,

@@ -34,6 +34,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._geometry import unloaded_observables, unloaded_state
 from .._lie import twist_angle, unwrap_near
 from .._misc import check_choice, finite_scalar, float_dtype, is_concrete, no_gradient
+from .._progress import ProgressArgument, ProgressReport, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import check_one_rod
 from .._status import RESULTS, raise_if_failed
 from ._bulk import BulkHelix, bulk_helix_at
@@ -152,60 +153,103 @@ def _no_bulk(dtype) -> BulkHelix:
                      rotation=nan, result=RESULTS.invalid_input)
 
 
-@eqx.filter_jit
-def _curve(rod, length, kind, values, options: BoundaryValueOptions, mode: str, hints=None, with_bulk: bool = True, guess=None):
-    """Solve every point of a curve; `values` `(n, 4)` = (F, M, h, Theta) per point.
-    `hints` `(n,)`: rotations near which to count whole turns (independent mode; default
-    the bulk prediction's); `with_bulk=False` (independent mode): no bulk prediction.
-    `guess` (as `solve`): the start of every point (independent mode) or of the first
-    (continuation; the default guess where that solve fails)."""
-    start = Clamped(*unloaded_state(no_gradient(rod), 0.0))
-    start = jax.tree.map(jnp.asarray, start)
-    index = jnp.asarray(CONTROL_INDEX)[kind]
+def _curve_setup(rod, length):
+    """The clamped start, the unloaded end rotation and the unloaded bulk guess of a curve."""
+    start = jax.tree.map(jnp.asarray, Clamped(*unloaded_state(no_gradient(rod), 0.0)))
     _, theta0 = unloaded_observables(rod, length)
     unloaded = (jnp.asarray(rod.uhat), jnp.zeros(()), jnp.zeros(()))
+    return start, theta0, unloaded
 
-    def observe(sol, bulk, v, hint):
-        hint = jnp.where(kind == LOADED, hint, v[3])
-        obs = jnp.where(sol.ok, axial_observables(rod, length, sol, hint), jnp.nan)
-        return obs, jnp.where(bulk.ok, bulk.observables, jnp.nan)
 
+def _observe(rod, length, kind, sol, bulk, v, hint):
+    hint = jnp.where(kind == LOADED, hint, v[3])
+    obs = jnp.where(sol.ok, axial_observables(rod, length, sol, hint), jnp.nan)
+    return obs, jnp.where(bulk.ok, bulk.observables, jnp.nan)
+
+
+def _independent_points(rod, length, kind, values, hints, options: BoundaryValueOptions, with_bulk: bool, guess):
+    """Independent mode: every point from `guess` (as `solve`), vmapped."""
+    start, theta0, unloaded = _curve_setup(rod, length)
+    index = jnp.asarray(CONTROL_INDEX)[kind]
+
+    def one(v, hint):
+        end = axial_end_condition(rod, length, kind, v)
+        sol = solve(rod, length, start, end, guess, None, options)
+        bulk = bulk_helix_at(rod, length, index, v, unloaded) if with_bulk else _no_bulk(values.dtype)
+        if hint is None:
+            hint = jnp.where(bulk.ok, bulk.rotation, theta0)
+        obs, bulk_obs = _observe(rod, length, kind, sol, bulk, v, hint)
+        return obs, bulk_obs, sol, bulk.ok
+
+    return jax.vmap(one)(values, hints)
+
+
+def _continuation_start(rod, length, kind, first, options: BoundaryValueOptions, guess):
+    """The carry of continuation mode before the first point `first` (4,): its warm start
+    (from `guess` where that solve succeeds, else the default), the unloaded bulk guess, and
+    the rotation near which its whole turns are counted."""
+    start, theta0, unloaded = _curve_setup(rod, length)
+    first_end = axial_end_condition(rod, length, kind, first)
+    guess0 = no_gradient(default_warm_start(rod, length, start, first_end, options.segments, "helix"))
+    if guess is not None:
+        solved = no_gradient(solve(rod, length, start, first_end, guess, None, options))
+        guess0 = jax.tree.map(lambda a, b: jnp.where(solved.ok, a, b), solved.warm_start(), guess0)
+    bulk0 = bulk_helix_at(rod, length, jnp.asarray(CONTROL_INDEX)[kind], first, unloaded)
+    return guess0, unloaded, jnp.where(bulk0.ok, bulk0.rotation, theta0)
+
+
+def _continuation_points(rod, length, kind, values, options: BoundaryValueOptions, carry):
+    """Continuation mode: the points in order, each warm-started from the last converged
+    one (`lax.scan` from `carry`); returns the carry after the last point and the outputs."""
+    start, _, _ = _curve_setup(rod, length)
+    index = jnp.asarray(CONTROL_INDEX)[kind]
+
+    def step(carry, v):
+        guess, bulk_guess, hint = carry
+        end = axial_end_condition(rod, length, kind, v)
+        sol = solve(rod, length, start, end, guess, None, options)
+        bulk = bulk_helix_at(rod, length, index, v, bulk_guess)
+        obs, bulk_obs = _observe(rod, length, kind, sol, bulk, v, hint)
+        # A failed point does not spoil the warm start of the next one.
+        keep = lambda new, old, ok: jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, old)  # noqa: E731
+        guess = keep(no_gradient(sol.warm_start()), guess, sol.ok)
+        bulk_guess = keep(no_gradient((bulk.u, bulk.mu1, bulk.mu2)), bulk_guess, bulk.ok)
+        hint = jnp.where(sol.ok, obs[3], hint)
+        return (guess, bulk_guess, hint), (obs, bulk_obs, sol, bulk.ok)
+
+    return jax.lax.scan(step, carry, values)
+
+
+@eqx.filter_jit
+def _curve(rod, length, kind, values, options: BoundaryValueOptions, mode: str, hints=None, with_bulk: bool = True, guess=None):
+    """Solve every point of a curve in one compiled program; `values` `(n, 4)` = (F, M, h,
+    Theta) per point.  `hints` `(n,)`: rotations near which to count whole turns
+    (independent mode; default the bulk prediction's); `with_bulk=False` (independent
+    mode): no bulk prediction.  `guess` (as `solve`): the start of every point (independent
+    mode) or of the first (continuation; the default guess where that solve fails)."""
     if mode == "independent":
+        return _independent_points(rod, length, kind, values, hints, options, with_bulk, guess)
+    carry = _continuation_start(rod, length, kind, values[0], options, guess)
+    return _continuation_points(rod, length, kind, values, options, carry)[1]
 
-        def one(v, hint):
-            end = axial_end_condition(rod, length, kind, v)
-            sol = solve(rod, length, start, end, guess, None, options)
-            bulk = bulk_helix_at(rod, length, index, v, unloaded) if with_bulk else _no_bulk(values.dtype)
-            if hint is None:
-                hint = jnp.where(bulk.ok, bulk.rotation, theta0)
-            obs, bulk_obs = observe(sol, bulk, v, hint)
-            return obs, bulk_obs, sol, bulk.ok
 
-        obs, bulk_obs, sols, bulk_ok = jax.vmap(one)(values, hints)
-    else:
-        first_end = axial_end_condition(rod, length, kind, values[0])
-        guess0 = no_gradient(default_warm_start(rod, length, start, first_end, options.segments, "helix"))
-        if guess is not None:
-            first = no_gradient(solve(rod, length, start, first_end, guess, None, options))
-            guess0 = jax.tree.map(lambda a, b: jnp.where(first.ok, a, b), first.warm_start(), guess0)
-        bulk0 = bulk_helix_at(rod, length, index, values[0], unloaded)
-        hint0 = jnp.where(bulk0.ok, bulk0.rotation, theta0)
+# While progress is shown, a curve is solved in host-side batches of points, each one call
+# of the same compiled program (continuation: the carry passes from batch to batch).
+_independent_batch = eqx.filter_jit(_independent_points)
+_continuation_first = eqx.filter_jit(_continuation_start)
+_continuation_batch = eqx.filter_jit(_continuation_points)
 
-        def step(carry, v):
-            guess, bulk_guess, hint = carry
-            end = axial_end_condition(rod, length, kind, v)
-            sol = solve(rod, length, start, end, guess, None, options)
-            bulk = bulk_helix_at(rod, length, index, v, bulk_guess)
-            obs, bulk_obs = observe(sol, bulk, v, hint)
-            # A failed point does not spoil the warm start of the next one.
-            keep = lambda new, old, ok: jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, old)  # noqa: E731
-            guess = keep(no_gradient(sol.warm_start()), guess, sol.ok)
-            bulk_guess = keep(no_gradient((bulk.u, bulk.mu1, bulk.mu2)), bulk_guess, bulk.ok)
-            hint = jnp.where(sol.ok, obs[3], hint)
-            return (guess, bulk_guess, hint), (obs, bulk_obs, sol, bulk.ok)
 
-        _, (obs, bulk_obs, sols, bulk_ok) = jax.lax.scan(step, (guess0, unloaded, hint0), values)
-    return obs, bulk_obs, sols, bulk_ok
+def _curve_in_batches(rod, length, kind, values, options, mode, hints, with_bulk, guess, report: ProgressReport):
+    """`_curve` in batches of points, advancing `report` after each (the same results)."""
+    n = values.shape[0]
+    size = batch_size(n)
+    if mode == "independent":
+        solve_batch = lambda _, batch: (None, _independent_batch(rod, length, kind, *batch, options, with_bulk, guess))  # noqa: E731
+        return scan_in_batches(solve_batch, None, (values, hints), n, size, report)[1]
+    carry = _continuation_first(rod, length, kind, values[0], options, guess)
+    solve_batch = lambda carry, batch: _continuation_batch(rod, length, kind, batch, options, carry)  # noqa: E731
+    return scan_in_batches(solve_batch, carry, values, n, size, report)[1]
 
 
 def _point_values(name, given, owner):
@@ -251,6 +295,7 @@ def axial_response(
     ode_atol: float | None = None,
     adjoint: diffrax.AbstractAdjoint | None = None,
     throw: bool = False,
+    progress: ProgressArgument = None,
 ) -> ResponseCurve:
     """The axial response of a finite rod at a sequence of control pairs: two of `force`,
     `moment`, `extension`, `rotation` (scalars or `(n,)` arrays, broadcast; the pairs of
@@ -267,6 +312,17 @@ def axial_response(
     in independent mode.  `options` and the keywords after it: as `solve_boundary_value`.
     `throw`: raise `SolverError` if any point fails (default `False`: failed points have
     `ok = False` and NaN observables).  jit/vmap safe.
+
+    `progress`: `None` (default) shows a rich progress bar of the points solved when stdout
+    is a terminal (and the inputs are concrete, not traced), `True`/`False` force it on or
+    off, and a callable is called as `progress(done, total)` (points solved, `n`) instead
+    of a bar.  While progress is shown the points are solved in up to 20 host-side batches
+    of one compiled program (the last padded), and the bisection for `critical` comes
+    after the last point.  Continuation passes its warm start from batch to batch and
+    gives the curve of the single call bit for bit; in independent mode the narrower
+    vmap rounds differently (round-off in the responses; the stability margin, an
+    eigenvalue of a stiff Hessian, to ~1e-9 relative).  Under `jax.jit` or `vmap` only
+    `None` and `False` are allowed.
     """
     owner = "axial_response"
     try:
@@ -276,15 +332,18 @@ def axial_response(
     values, swept = _point_values(name, given, owner)
     return _response(
         rod, length, name, values, swept, mode=mode, rotation_hint=rotation_hint, bulk=bulk, owner=owner, guess=guess,
-        throw=throw, options=with_settings(
+        throw=throw, progress=progress, options=with_settings(
             options, segments=segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
             ode_atol=ode_atol, adjoint=adjoint,
         ),
     )
 
 
-def _response(rod, length, name, values, swept, *, mode, options, owner, throw, rotation_hint=None, bulk=True, guess=None):
+def _response(
+    rod, length, name, values, swept, *, mode, options, owner, throw, progress, rotation_hint=None, bulk=True, guess=None
+):
     check_choice(mode, MODES, "mode", owner)
+    progress = check_progress(progress, owner)
     check_one_rod(rod, owner)
     length = finite_scalar(length, "length", owner, positive=True)
     guess, guess_kind = parse_guess(guess, owner)
@@ -299,7 +358,20 @@ def _response(rod, length, name, values, swept, *, mode, options, owner, throw, 
         hint = values[:, 3] if rotation_hint is None else jnp.asarray(rotation_hint, values.dtype)
         hints = jnp.broadcast_to(hint, values.shape[:1])
     kind = jnp.asarray(AXIAL_CONTROLS[name].kind, jnp.int32)
-    obs, bulk_obs, sols, bulk_ok = _curve(rod, length, kind, values, options, mode, hints, bool(bulk), guess)
+    concrete = is_concrete(rod, length, values, hints, guess, options)
+    if not concrete and progress not in (None, False):
+        raise ValueError(
+            f"{owner}: progress= reports between host-side batches of points and needs concrete inputs, "
+            "not traced ones (under jax.jit, vmap or grad): leave it None or False there"
+        )
+    n = values.shape[0]
+    with progress_bar(owner, n, progress, owner=owner, auto=concrete and n > 1) as report:
+        if report.shown:
+            obs, bulk_obs, sols, bulk_ok = _curve_in_batches(
+                rod, length, kind, values, options, mode, hints, bool(bulk), guess, report
+            )
+        else:  # one call: nothing is slower for want of a bar
+            obs, bulk_obs, sols, bulk_ok = _curve(rod, length, kind, values, options, mode, hints, bool(bulk), guess)
     curve = ResponseCurve(
         controls=name,
         swept=swept,
@@ -386,6 +458,7 @@ def force_extension(
     ode_atol: float | None = None,
     adjoint: diffrax.AbstractAdjoint | None = None,
     throw: bool = False,
+    progress: ProgressArgument = None,
 ) -> ResponseCurve:
     """Force-extension curve of a finite rod of length `length`, axial `forces` `(n,)`.
 
@@ -397,7 +470,8 @@ def force_extension(
     `mode`: `"continuation"` (default; in order, each solve warm-started from the
     previous -- sort `forces` from small to large) or `"independent"` (vmapped solves from
     the bulk guess).  `guess` as `axial_response`.  `options` and the keywords after it: as
-    `solve_boundary_value`; `throw` as `axial_response`.  jit/vmap safe (e.g. `jax.vmap`
+    `solve_boundary_value`; `throw` and `progress` (a progress bar or callback over the
+    points) as `axial_response`.  jit/vmap safe (e.g. `jax.vmap`
     over lengths); unconverged points have `ok = False` and NaN observables.
 
     **Example**
@@ -419,7 +493,7 @@ def force_extension(
     name, given = axial_controls(force=forces, **held)
     values, _ = _point_values(name, given, owner)
     return _response(
-        rod, length, name, values, "force", mode=mode, owner=owner, throw=throw, guess=guess, options=with_settings(
+        rod, length, name, values, "force", mode=mode, owner=owner, throw=throw, progress=progress, guess=guess, options=with_settings(
             options, segments=segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
             ode_atol=ode_atol, adjoint=adjoint,
         ),
@@ -444,6 +518,7 @@ def rotation_response(
     ode_atol: float | None = None,
     adjoint: diffrax.AbstractAdjoint | None = None,
     throw: bool = False,
+    progress: ProgressArgument = None,
 ) -> ResponseCurve:
     """Torque (and extension or force) against the end rotation of a finite rod.
 
@@ -451,8 +526,8 @@ def rotation_response(
     $\\Theta_0 = L|\\hat u|$ is the unloaded end).  Held fixed (exactly one): the axial
     `force` (magnetic tweezer: torque and extension against turns, `Tweezer` end) or the
     `extension` $h$ (a spring twisted between grips: torque and axial force, `Clamped`
-    end).  Other arguments as `force_extension`; continuation in the rotation counts the
-    whole turns of the end.
+    end).  Other arguments (`progress` included) as `force_extension`; continuation in the
+    rotation counts the whole turns of the end.
     """
     owner = "rotation_response"
     if (force is None) == (extension is None):
@@ -465,7 +540,7 @@ def rotation_response(
     name, given = axial_controls(rotation=rotations, **held)
     values, _ = _point_values(name, given, owner)
     return _response(
-        rod, length, name, values, "rotation", mode=mode, owner=owner, throw=throw, guess=guess, options=with_settings(
+        rod, length, name, values, "rotation", mode=mode, owner=owner, throw=throw, progress=progress, guess=guess, options=with_settings(
             options, segments=segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
             ode_atol=ode_atol, adjoint=adjoint,
         ),

@@ -1,4 +1,5 @@
-"""Bootstrap replicates of a fit: resampled or redrawn data, refitted in one vmapped call."""
+"""Bootstrap replicates of a fit: resampled or redrawn data, refitted in one vmapped call
+(or, while progress is shown, in host-side batches of one compiled vmapped call)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from .._progress import ProgressArgument, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import PARAMETER_NAMES, rod_vector
 from .._status import RESULTS, raise_if_failed
 from ._pipeline import StiffnessFit, cost_at, minimise
@@ -56,13 +58,22 @@ def _refits(z0, models, param, solver, max_steps: int):
     return jax.vmap(one)(models)
 
 
-def bootstrap(data, fit: StiffnessFit, n: int, key: Array, *, kind: str = "cases", throw: bool = False) -> Bootstrap:
+def bootstrap(
+    data, fit: StiffnessFit, n: int, key: Array, *, kind: str = "cases", throw: bool = False,
+    progress: ProgressArgument = None,
+) -> Bootstrap:
     """`n` bootstrap refits of `fit` on resampled `data`, vmapped, each started at `fit`.
 
     `kind="cases"` resamples data points with replacement (no trust in sigma needed);
     `"parametric"` redraws the observations around the fitted predictions with the data's
     sigmas.  Same model, options and solver as `fit` (helix data).  Returns a `Bootstrap`;
     `throw=True` raises `SolverError` if a replicate fails (default: it is NaN and flagged).
+
+    `progress`: `None` (default) shows a rich progress bar of the replicates when stdout is
+    a terminal, `True`/`False` force it on or off, and a callable is called as
+    `progress(done, total)` (replicates refitted, `n`) instead of a bar.  While progress is
+    shown the replicates are refitted in up to 20 host-side batches (one compiled program,
+    the last batch padded); the replicates are the same either way.
     """
     if fit.problem is None:
         raise ValueError("bootstrap needs a fit from fit_stiffness (not fit_stiffness_linear)")
@@ -70,6 +81,7 @@ def bootstrap(data, fit: StiffnessFit, n: int, key: Array, *, kind: str = "cases
         raise ValueError(f"kind must be 'cases' or 'parametric', got {kind!r}")
     if n < 2:
         raise ValueError("n must be >= 2")
+    check_progress(progress, "bootstrap")
     problem = fit.problem
     model = problem.model.with_data(data)
     param = problem.parameterisation
@@ -77,7 +89,12 @@ def bootstrap(data, fit: StiffnessFit, n: int, key: Array, *, kind: str = "cases
     p_fit = np.asarray(rod_vector(fit.rod))
     extra_fit = np.asarray(param.extra_vector(jnp.asarray([float(fit.params[n]) for n in param.names])))
     z0 = jnp.asarray(param.internal(p_fit, extra_fit))
-    p, q, results = _refits(z0, models, param, problem.solver, problem.max_steps)
+    with progress_bar("bootstrap", int(n), progress, owner="bootstrap") as report:
+        if report.shown:
+            refit = lambda _, batch: (None, _refits(z0, batch, param, problem.solver, problem.max_steps))  # noqa: E731
+            _, (p, q, results) = scan_in_batches(refit, None, models, int(n), batch_size(n), report)
+        else:  # one call: nothing is slower for want of a bar
+            p, q, results = _refits(z0, models, param, problem.solver, problem.max_steps)
     p, q = np.array(p), np.array(q)
     ok = np.asarray(results == RESULTS.successful)
     p = np.stack([closest_in_orbit(pi, p_fit, param, model.frame_observed) for pi in p])

@@ -235,7 +235,7 @@ def synthetic_end_response_data(
     given = {AXIAL_OBSERVABLES[test.controls[0]]: first, AXIAL_OBSERVABLES[test.controls[1]]: second}
     options = BoundaryValueOptions(segments=check_integer(segments, "segments", owner), atol=1e-11, ode_rtol=1e-11, ode_atol=1e-11,
                                    stability_pieces=0)
-    curve = axial_response(rod, length, **given, mode="independent", options=options)
+    curve = axial_response(rod, length, **given, mode="independent", options=options, progress=False)
     ok = np.asarray(curve.ok)
     if not ok.all():
         raise ValueError(f"{owner}: points {np.flatnonzero(~ok)[:20].tolist()} did not converge")

@@ -352,7 +352,7 @@ class EndResponseModel(AbstractForwardModel):
         given = {AXIAL_OBSERVABLES[i]: self.values[:, i] for i in test.controls}
         curve = axial_response(
             rod, self.length, **given, mode="independent", rotation_hint=self.values[:, 3], bulk=False,
-            options=BoundaryValueOptions(segments=self.segments, stability_pieces=0),
+            options=BoundaryValueOptions(segments=self.segments, stability_pieces=0), progress=False,
         )
         predicted = {AXIAL_OBSERVABLES[i]: getattr(curve, AXIAL_OBSERVABLES[i]) for i in test.responses}
         prediction = jnp.stack(list(predicted.values()), -1)

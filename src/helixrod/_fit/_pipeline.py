@@ -21,6 +21,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
 from .._misc import is_concrete, write_atomically
+from .._progress import ProgressArgument, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
 from .._status import RESULTS, message, promote, raise_if_failed, result_from_name, result_name
 from ._models import AbstractForwardModel, forward_model
@@ -410,6 +411,7 @@ def fit_stiffness(
     errors_in_variables: bool | None = None,
     fit_offsets: bool | None = None,
     throw: bool = False,
+    progress: ProgressArgument = None,
 ) -> StiffnessFit:
     """Fit the stiffness $K$ (and optionally $\\hat u$) of a rod to data.
 
@@ -460,6 +462,12 @@ def fit_stiffness(
       on when the data carry `kappa_sigma` or `tau_sigma`).
     - `throw`: raise `SolverError` if the best start did not converge (default `False`:
       read `ok`, `result`, `message`).
+    - `progress`: `None` (default) shows a rich progress bar when stdout is a terminal,
+      `True`/`False` force it on or off, and a callable is called as
+      `progress(done, total)` instead of a bar, with `total = n_starts + 1`: one unit per
+      start solved, one for the error analysis.  While progress is shown the starts are
+      solved in up to 20 host-side batches of one compiled program (the last padded), and
+      the bar moves between them, never inside the optimisation; the fit is the same.
 
     Fewer residuals than free parameters (a single data point gives two) is allowed: the
     fit reproduces the data and the report says what is left open -- `identifiability.rank`
@@ -490,6 +498,7 @@ def fit_stiffness(
         raise ValueError(f"n_starts must be >= 1, got {n_starts}")
     if batching not in BATCHING:
         raise ValueError(f"batching must be 'map' or 'vmap', got {batching!r}")
+    check_progress(progress, "fit_stiffness")
     extra = model.parameters
     fixed = resolve_fixed(uhat, fit_uhat, fix, extra, init, isotropic)
     u_fixed = [fixed.get(f"uhat{i}", 0.0) for i in (1, 2, 3)]
@@ -500,10 +509,26 @@ def fit_stiffness(
         p0[1] = p0[0]  # an init's K2 gives way to the tie
     param = Parameterisation(fixed, float(np.sqrt(p0[0] * p0[1])), model.twist_scale(p0), extra, extra0, isotropic)
     key = jax.random.key(0) if key is None else key
-    z0s = param.starts(param.internal(p0), int(n_starts), key)
-    z, cost, results, steps = _multistart(jnp.asarray(z0s), model, param, solver, int(max_steps), batching)
-    z, cost, steps = np.asarray(z), np.asarray(cost), np.asarray(steps)
+    n_starts = int(n_starts)
+    z0s = param.starts(param.internal(p0), n_starts, key)
+    with progress_bar("fit_stiffness: starts", n_starts + 1, progress, owner="fit_stiffness") as report:
+        if report.shown:
+            solve = lambda _, batch: (None, _multistart(batch, model, param, solver, int(max_steps), batching))  # noqa: E731
+            _, (z, cost, results, steps) = scan_in_batches(solve, None, jnp.asarray(z0s), n_starts, batch_size(n_starts), report)
+        else:  # one call: nothing is slower for want of a bar
+            z, cost, results, steps = _multistart(jnp.asarray(z0s), model, param, solver, int(max_steps), batching)
+        report.describe("fit_stiffness: error analysis")
+        fit = _best_start(
+            z, cost, results, steps, model, param, solver, method, int(max_steps), absolute_sigma, weak_threshold
+        )
+        report.advance(1)
+    return raise_if_failed(fit, fit.result, "fit_stiffness: the best start did not converge") if throw else fit
 
+
+def _best_start(z, cost, results, steps, model, param, solver, method, max_steps, absolute_sigma, weak_threshold):
+    """The `StiffnessFit` of the best of the solved starts: canonical in its symmetry orbit,
+    with the starts that agree with it counted and the error analysis at it."""
+    z, cost, steps = np.asarray(z), np.asarray(cost), np.asarray(steps)
     best = int(np.argmin(np.where(np.isfinite(cost), cost, np.inf)))
     frame_observed = model.frame_observed
     p_all, q_all = (np.asarray(a) for a in _physical_values(jnp.asarray(z), param))
@@ -529,9 +554,8 @@ def fit_stiffness(
     result = jax.tree.map(lambda v: v[best], results)
     if not np.isfinite(analysis.cost):
         result = RESULTS.cost_not_finite
-    fit = assemble(
+    return assemble(
         rod_from_vector(p_best, checked=True), analysis, dict(zip(param.names, q)), r, predicted, result=result,
         method=method, absolute_sigma=absolute_sigma, n_steps=int(steps[best]), start_costs=cost, n_agree=agree,
-        problem=FitProblem(model, param, solver, int(max_steps)),
+        problem=FitProblem(model, param, solver, max_steps),
     )
-    return raise_if_failed(fit, fit.result, "fit_stiffness: the best start did not converge") if throw else fit

@@ -48,6 +48,9 @@ def fit(
     strict: bool = typer.Option(False, "--strict", metavar="", help="an unknown CSV column is an error (default: ignored with a note)"),
     out: Path = typer.Option(None, help="write the fit (or the comparison) as JSON"),
     plot: Path = typer.Option(None, help="write observed vs predicted F and M (or the comparison) as PNG"),
+    progress: bool | None = typer.Option(
+        None, "--progress/--no-progress", metavar="", help="progress bar (default: on a terminal)"
+    ),
 ) -> None:
     """Fit K1, K2, K3, K13, K23 (and uhat) to measured helices (the inverse spring problem)."""
     console = Console()
@@ -65,6 +68,7 @@ def fit(
         key=jax.random.key(seed),
         absolute_sigma=not relative_sigma,
         errors_in_variables=errors_in_variables,
+        progress=progress,
     )
     if branch is not None:
         options["branch"] = branch

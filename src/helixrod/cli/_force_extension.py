@@ -35,6 +35,9 @@ def force_extension_command(
     segments: int = typer.Option(1, help="shooting pieces (more for long, stretched rods)"),
     out: Path | None = typer.Option(None, help="write the curve as JSON"),
     plot: Path | None = typer.Option(None, help="write extension against force (finite and bulk) as PNG"),
+    progress: bool | None = typer.Option(
+        None, "--progress/--no-progress", metavar="", help="progress bar (default: on a terminal)"
+    ),
 ) -> None:
     """Force-extension curve of a finite clamped rod against the uniform-helix (bulk) formula."""
     console = Console()
@@ -54,7 +57,7 @@ def force_extension_command(
     held = {"moment": moment} if moment is not None else {"rotation": length * norm + (rotation or 0.0)}
     start = time.perf_counter()
     try:
-        curve = force_extension(the_rod, length, force_values, segments=segments, **held)
+        curve = force_extension(the_rod, length, force_values, segments=segments, progress=progress, **held)
     except ValueError as error:
         raise typer.BadParameter(str(error)) from None
     seconds = time.perf_counter() - start

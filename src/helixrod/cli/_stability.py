@@ -25,6 +25,9 @@ def stability_command(
     slot: int = typer.Option(0, help="register slot of the figure (0: the global minimum of W on the circle)"),
     out: Path | None = typer.Option(None, help="write the atlas to this .npz (numpy.load reads it)"),
     plot: Path | None = typer.Option(None, help="write the atlas figure (PNG/PDF/SVG)"),
+    progress: bool | None = typer.Option(
+        None, "--progress/--no-progress", metavar="", help="progress bar (default: on a terminal)"
+    ),
 ) -> None:
     """Stability atlas: each uniform helix of the grid, of length L, clamped at both ends by its own wrench."""
     import jax.numpy as jnp
@@ -44,7 +47,9 @@ def stability_command(
     k_grid, t_grid = jnp.meshgrid(jnp.asarray(k_axis), jnp.asarray(t_axis), indexing="ij")
     start = time.perf_counter()
     try:
-        atlas = stability_atlas(the_rod, k_grid, t_grid, length, critical_length=critical, max_length=max_length, pieces=pieces)
+        atlas = stability_atlas(
+            the_rod, k_grid, t_grid, length, critical_length=critical, max_length=max_length, pieces=pieces, progress=progress
+        )
     except ValueError as error:
         raise typer.BadParameter(str(error)) from None
     seconds = time.perf_counter() - start

@@ -26,7 +26,9 @@ def sweep_command(
     out: Path | None = typer.Option(None, help="write the result to this .npz (load_sweep reads it)"),
     plot: Path | None = typer.Option(None, help="write the atlas figure (PNG/PDF/SVG)"),
     chunk_size: int | None = typer.Option(None, help="points per chunk (default 65536 per device)"),
-    progress: bool | None = typer.Option(None, "--progress/--no-progress", help="progress bar (default: on a terminal)"),
+    progress: bool | None = typer.Option(
+        None, "--progress/--no-progress", metavar="", help="progress bar (default: on a terminal)"
+    ),
 ) -> None:
     """Sweep the kappa-tau plane: registers, stability and wrench of every uniform helix."""
     console = Console()

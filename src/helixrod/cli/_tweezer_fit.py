@@ -60,13 +60,13 @@ def fitted_moduli(fit) -> dict[str, tuple[float, float]]:
     return {name: (float(v), float(e)) for name, v, e in zip(("S", "C", "g"), np.asarray(values), np.asarray(stderr))}
 
 
-def fit_tweezer_data(data, fixed: dict[str, float], fit_offsets: bool = True):
+def fit_tweezer_data(data, fixed: dict[str, float], fit_offsets: bool = True, progress: bool | None = None):
     """The fit of ``helixrod tweezer-fit`` (and of the demo): `fit_stiffness` of the
     `TweezerData` with uhat the B-DNA backbone helix of the bundled example rod, that rod as
     the start, `fixed` held fixed (see `default_fix`) and one bead offset per molecule if
-    `fit_offsets`."""
+    `fit_offsets`; `progress` as `fit_stiffness`'s."""
     rod = dna.load_tweezer_example().rod
-    return fit_stiffness(data, uhat=rod.uhat, init=rod, fix=fixed or None, fit_offsets=fit_offsets)
+    return fit_stiffness(data, uhat=rod.uhat, init=rod, fix=fixed or None, fit_offsets=fit_offsets, progress=progress)
 
 
 def print_tweezer_fit(console, fit, data, fixed: dict[str, float]) -> dict[str, tuple[float, float]]:
@@ -145,6 +145,9 @@ def tweezer_fit_command(
     plot: Path = typer.Option(None, help="write the figure (plot.plot_tweezer_fit; PNG/PDF/SVG by suffix)"),
     out: Path = typer.Option(None, help="write the fit as JSON"),
     strict: bool = typer.Option(False, "--strict", metavar="", help="an unknown CSV column is an error (default: ignored with a note)"),
+    progress: bool | None = typer.Option(
+        None, "--progress/--no-progress", metavar="", help="progress bar (default: on a terminal)"
+    ),
 ) -> None:
     """Fit the rod's stiffness (K2, K3, K23 by default), the bending persistence and the
     plectoneme twist persistence (and bead offsets) to tweezer curves: force-extension
@@ -174,7 +177,7 @@ def tweezer_fit_command(
     except ValueError as error:
         _fail(console, str(error))
     try:
-        fit = fit_tweezer_data(observations, fixed, fit_offsets)
+        fit = fit_tweezer_data(observations, fixed, fit_offsets, progress)
     except ValueError as error:
         _fail(console, str(error))
     by_torque = np.asarray(observations.torque_controlled)

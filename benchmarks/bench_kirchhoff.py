@@ -217,7 +217,7 @@ def saved_points(problem, count, repeats):
         rows = ref if saveat is not None else ref[-1:]
         err = float(max(np.abs(np.asarray(n) - rows[:, :3]).max(), np.abs(np.asarray(frame).reshape(-1, 9) - rows[:, 6:15]).max(),
                         np.abs(np.asarray(x) - rows[:, 15:]).max()))
-        out[label] = dict(cpu_s=best_cpu_time(lambda: run(*args), repeats), error=err)
+        out[label] = dict(cpu_s=best_cpu_time(lambda: run(*args), repeats), wall_s=best_time(lambda: run(*args), repeats), error=err)
     for label, t_eval in (("scipy_end", None), ("scipy_saved", ts)):
         solve = lambda t_eval=t_eval: solve_ivp(rhs, (0.0, length), y0, method="DOP853", rtol=1e-10, atol=1e-10, t_eval=t_eval).y  # noqa: E731
         y = solve().T

@@ -59,6 +59,14 @@ def rows_equilibria(r):
                         acc["helixrod"][0], ours["wall_s"], r["compile_s"][str(n)], "numpy eigvals + Newton",
                         acc["numpy"][0], peer["wall_s"],
                         note=f"CPU-time ratio {peer['cpu_s'] / ours['cpu_s']:.1f}x"))
+        hand = next((x for x in r["runs"] if x["method"] == "numba" and x["points"] == n), None)
+        if hand is not None:
+            agree = r.get("agreement", {}).get(str(n), {})
+            out.append(_row("equilibria", f"{n:.0e} helices, every register + wrench + stability", "helix_equilibria (jit)",
+                            acc["helixrod"][0], ours["wall_s"], r["compile_s"][str(n)], "numba kernel (hand-written)",
+                            acc["numba"][0], hand["wall_s"],
+                            note=f"{r.get('cores', '?')} core(s); register counts differ at {agree.get('count_differences', '?')} "
+                                 f"points, stability at {agree.get('stable_differences', '?')}"))
     sp = next(x for x in r["runs"] if x["method"] == "scipy")
     n = max(x["points"] for x in r["runs"] if x["method"] == "helixrod")
     ours = next(x for x in r["runs"] if x["method"] == "helixrod" and x["points"] == n)
@@ -98,6 +106,12 @@ def rows_kirchhoff(r):
             run_ = f["run"]
             out.append(_row("kirchhoff", case, f"{run_['method']}, tol {run_['tol']:.0e}", run_["error"], run_["wall_s"],
                             run_.get("compile_s"), "scipy DOP853, tol 1e-10", ref["error"], ref["wall_s"]))
+    for case, sv in (r.get("saved") or {}).items():
+        out.append(_row("kirchhoff", f"{case}: {sv['count']} saved points (frame, centreline, wrench)",
+                        "solve_static defaults, dense output", sv["saved"]["error"], sv["saved"]["cpu_s"], None,
+                        "scipy DOP853, tol 1e-10, t_eval", sv["scipy_saved"]["error"], sv["scipy_saved"]["cpu_s"],
+                        note=f"CPU time; {sv['saved_over_end']:.2f}x helixrod's end-only solve "
+                             f"(scipy: {sv['scipy_saved_over_end']:.2f}x its own)"))
     b = r.get("batched")
     if b:
         out.append(_row("kirchhoff", f"vmap over {b['count']} initial conditions (per solve)", "solve_static, vmap", None,

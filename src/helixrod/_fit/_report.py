@@ -137,7 +137,9 @@ def error_analysis(
     n_constrained = 0
     free_basis = np.eye(p)
     if stiff.any():
-        _, s_c, Vt_c = np.linalg.svd(Js[stiff], full_matrices=True)
+        # The full right factor (p x p) is needed for the free directions; the left one is
+        # thin unless there are fewer stiff rows than parameters.
+        _, s_c, Vt_c = np.linalg.svd(Js[stiff], full_matrices=int(stiff.sum()) < p)
         n_constrained = int(np.sum(s_c > 1e-10 * s_c[0]))
         free_basis = Vt_c[n_constrained:].T
         notes.append(

@@ -89,9 +89,11 @@ def test_sweep_too_large_for_memory_says_what_to_ask_for(tmp_path):
 
 def test_help_shows_no_value_for_plain_flags():
     """A flag takes no value: its help row shows no `<bool>` type (typer 0.29 prints one
-    unless the option has an empty metavar).  Only click's own --help row keeps it."""
-    for command in (["--help"], ["fit", "--help"], ["tweezer-fit", "--help"], ["demo", "--help"], ["stability", "--help"]):
+    unless the option has an empty metavar), --help's own row included."""
+    for command in (["--help"], ["fit", "--help"], ["tweezer-fit", "--help"], ["demo", "--help"], ["stability", "--help"],
+                    ["sweep", "--help"], ["force-extension", "--help"]):
         result = CliRunner(env={"COLUMNS": "200"}).invoke(app, command)
         assert result.exit_code == 0, result.output
-        flagged = [line for line in result.output.splitlines() if "<bool>" in line and "--help" not in line]
+        assert "--help" in result.output
+        flagged = [line for line in result.output.splitlines() if "<bool>" in line]
         assert flagged == [], (command, flagged)

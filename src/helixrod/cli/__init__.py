@@ -15,6 +15,7 @@ figures are drawn only by the plotting module (`helixrod.plot`).
 from __future__ import annotations
 
 import typer
+import typer.core
 
 from ._demo import demo as demo, demo_dna_fit as demo_dna_fit, demo_fit as demo_fit
 from ._fit import example_data_path as example_data_path, fit as fit
@@ -24,7 +25,28 @@ from ._stability import stability_command as stability_command
 from ._sweep import sweep_command as sweep_command
 from ._tweezer_fit import tweezer_fit_command as tweezer_fit_command
 
-app = typer.Typer(add_completion=False, help="helixrod: elastic Kirchhoff rods and helices in JAX.")
+
+
+def _plain_help_flag(command_class):
+    """`command_class` whose --help row shows no value: typer prints a flag's type
+    (`<bool>`) unless its metavar is empty, and the help option is click's own."""
+
+    class Command(command_class):
+        def get_help_option(self, ctx):
+            option = super().get_help_option(ctx)
+            if option is not None:
+                option.metavar = ""
+            return option
+
+    Command.__name__ = command_class.__name__
+    return Command
+
+
+_Command = _plain_help_flag(typer.core.TyperCommand)
+app = typer.Typer(
+    add_completion=False, help="helixrod: elastic Kirchhoff rods and helices in JAX.",
+    cls=_plain_help_flag(typer.core.TyperGroup),
+)
 
 
 @app.callback()
@@ -48,9 +70,9 @@ def _main(
             typer.echo(f"warning: no compilation cache ({error})", err=True)
 
 
-app.command()(demo)
-app.command(name="sweep")(sweep_command)
-app.command()(fit)
-app.command(name="force-extension")(force_extension_command)
-app.command(name="tweezer-fit")(tweezer_fit_command)
-app.command(name="stability")(stability_command)
+app.command(cls=_Command)(demo)
+app.command(name="sweep", cls=_Command)(sweep_command)
+app.command(cls=_Command)(fit)
+app.command(name="force-extension", cls=_Command)(force_extension_command)
+app.command(name="tweezer-fit", cls=_Command)(tweezer_fit_command)
+app.command(name="stability", cls=_Command)(stability_command)

@@ -207,8 +207,8 @@ class LieGroupInterpolation(diffrax.AbstractLocalInterpolation):
     stay rotations and the saved wrenches conserve $|n|^2$ and $m\cdot n$ like the steps,
     and it is exact whenever the twist is constant on the step (then $\theta(r) =
     r\,h\,\xi$).  Saving at $s$ thus costs one group exponential, not a step that ends
-    there.  The weights are applied at each saved point, not at each step: most steps
-    hold no saved point."""
+    there.  A step only stacks its stage velocities; the weights are evaluated where a
+    point is saved."""
 
     t0: Array
     t1: Array

@@ -252,10 +252,9 @@ def _solve(A, B, C, careful=False, slots=_ALL_SLOTS):
     # a lower bound of the square root).  Inner: at the root P^2/(2a - nu)^2 exceeds its
     # value at nu = |Q|, so Q^2/nu^2 is below 1 - P^2/(2a - |Q|)^2.
     r_low = jnp.maximum(abs_b, abs_c) + 0.41421356 * jnp.minimum(abs_b, abs_c)
-    Qs, Ps, es, starts, needed = [], [], [], [], []
+    Qs, Ps, Q2s, P2s, es, starts, needed = [], [], [], [], [], [], []
     for slot in slots:
-        Q, P = (b_it, c_it) if _Q_IS_B[slot] else (c_it, b_it)
-        absQ = abs_b if _Q_IS_B[slot] else abs_c
+        Q, P, Q2, P2, absQ = (b_it, c_it, b2, c2, abs_b) if _Q_IS_B[slot] else (c_it, b_it, c2, b2, abs_c)
         if _INNER[slot]:
             e = inner_sign
             inner_room = 1 - P * P / jnp.square(jnp.where(pair, aa - absQ, 1.0))
@@ -265,10 +264,9 @@ def _solve(A, B, C, careful=False, slots=_ALL_SLOTS):
             e = 1.0
             start = jnp.maximum(absQ, r_low - aa)
             needed.append(jnp.ones_like(pair))
-        Qs.append(Q), Ps.append(P), es.append(e), starts.append(start)
-    Q2s = tuple(b2 if _Q_IS_B[slot] else c2 for slot in slots)
-    P2s = tuple(c2 if _Q_IS_B[slot] else b2 for slot in slots)
-    nus, done = _secular_solve(tuple(starts), aa, Q2s, P2s, tuple(es), tuple(needed), careful)
+        for values, value in ((Qs, Q), (Ps, P), (Q2s, Q2), (P2s, P2), (es, e), (starts, start)):
+            values.append(value)
+    nus, done = _secular_solve(tuple(starts), aa, tuple(Q2s), tuple(P2s), tuple(es), tuple(needed), careful)
     all_done = functools.reduce(jnp.logical_and, (d | ~n for d, n in zip(done, needed)))
     converged = (all_done & decided) | factorable | continuum
 

@@ -135,6 +135,24 @@ def rows_fit(r):
     return out
 
 
+def rows_fit_problems(r):
+    """The random-problems study of bench_fit.py (--problems): the default fit against scipy
+    trf with restarts at the peer's best success rate, medians of CPU time per fit."""
+    s = r["summary"]
+    ours, old = s["helixrod default"], s.get("helixrod n_starts=32")
+    peer_name = r["peer_at_best"]
+    peer = s[peer_name]
+    rates = ", ".join(f"{name.replace('scipy trf, ', 'trf ')} {v['success_rate']:.0%} ({v['median_s'] * 1e3:.3g} ms)"
+                      for name, v in s.items() if name.startswith("scipy"))
+    note = (f"success (global minimum, cost within 1e-6 of the best found): default {ours['success_rate']:.0%} "
+            f"({ours['mean_starts']:.1f} starts on average)"
+            + ("" if old is None else f", n_starts=32 {old['success_rate']:.0%} ({old['median_s'] * 1e3:.3g} ms)")
+            + f"; scipy {rates}; median CPU time per fit, one core; totals {ours['total_s']:.3g} s vs {peer['total_s']:.3g} s")
+    return [_row("fit", f"{r['problems']} random problems, 20-200 helices, 1 % noise, uhat known (default fit)",
+                 "fit_stiffness defaults (early stop)", None, ours["median_s"], None,
+                 f"{peer_name} (compiled JAX model, jacfwd)", None, peer["median_s"], note=note)]
+
+
 def rows_finite(r):
     res = r.get("results", {})
     cases = {"clamped": ("clamped-clamped spring, 3 turns, 41 points", "solve_boundary_value"),
@@ -242,6 +260,8 @@ def main():
         report = _load(name)
         if report is not None:
             rows += EXTRACT[name](report)
+        if name == "fit" and (RESULTS / "bench_fit_problems.json").exists():
+            rows += rows_fit_problems(json.loads((RESULTS / "bench_fit_problems.json").read_text()))
     cpu = platform.processor() or platform.machine()
     try:
         cpu = next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name"))

@@ -28,7 +28,7 @@ def test_noise_free_recovery_and_linear_fit_agree(rng):
         assert fit.identifiability.symmetries == ()  # generic fixed uhat breaks them all
         truth = parameter_vector(rod)
         np.testing.assert_allclose(parameter_vector(fit.rod), truth, rtol=0, atol=1e-8 * np.abs(truth[:5]).max())
-        assert fit.n_agree >= 1 and fit.n_starts == 32
+        assert fit.n_agree >= 1 and 1 <= fit.n_starts <= 32 and fit.start_costs.shape == (fit.n_starts,)  # early stop
         # The same helices with full local vectors: closed-form linear fit, same rod.
         eq = hr.helix_equilibria(rod, kappa, tau)
         lin = hr.fit_stiffness_linear(eq.u[:, 0], eq.m[:, 0], uhat=rod.uhat)

@@ -20,9 +20,9 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
-from .._misc import is_concrete, write_atomically
-from .._progress import ProgressArgument, batch_size, check_progress, progress_bar, scan_in_batches
-from .._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
+from .._misc import float_dtype, is_concrete, write_atomically
+from .._progress import ProgressArgument, batch_size, check_progress, padded_batch, progress_bar, scan_in_batches
+from .._rod import PARAMETER_NAMES, Rod, _positive_definite, _rod_treedef, rod_from_vector, rod_vector
 from .._status import RESULTS, message, promote, raise_if_failed, result_from_name, result_name
 from ._models import AbstractForwardModel, forward_model
 from ._parameters import Parameterisation, extra_start, resolve_fixed, start_vector
@@ -334,7 +334,8 @@ def cost_at(z, model: AbstractForwardModel, param: Parameterisation):
 
 @eqx.filter_jit
 def _multistart(z0s, model, param, solver, max_steps: int, batching: str):
-    """Local solves from every start; returns z, cost, result, steps per start.
+    """Local solves from every start; returns z, cost, result, steps, the full physical
+    vector and the free physical values per start.
 
     `batching="vmap"` solves all starts in lock step; `"map"` (`jax.lax.map`) one after
     another.  "map" is the default because it is faster here: under `vmap` the register
@@ -346,18 +347,12 @@ def _multistart(z0s, model, param, solver, max_steps: int, batching: str):
         z, result, steps = minimise(z0, model, param, solver, max_steps)
         cost = cost_at(z, model, param)
         result = RESULTS.where(jnp.isfinite(cost) | (result != RESULTS.successful), result, RESULTS.cost_not_finite)
-        return z, cost, result, steps
+        q = param.physical(z)
+        return z, cost, result, steps, param.full(q), q
 
     if batching == "vmap":
         return jax.vmap(one)(z0s)
     return jax.lax.map(one, z0s)
-
-
-@eqx.filter_jit
-def _physical_values(z, param: Parameterisation):
-    """The rod's full vectors and the free physical values of internal coordinates `z`."""
-    q = jax.vmap(param.physical)(z)
-    return jax.vmap(param.full)(q), q
 
 
 @eqx.filter_jit
@@ -434,11 +429,19 @@ def fit_stiffness(
       `compare_models` are `isotropic` and `fix` patterns.
     - `init`: a `Rod` or mapping for the first start; default: an isotropic rod that fits
       the data by linear least squares (helices: Love's formulas).  Starts 2..`n_starts`
-      (default 32 for helices, 1 for finite rods) are random perturbations of it
-      (log-normal stiffnesses, random couplings and twists), drawn from `key` (default
-      `jax.random.key(0)`), solved in one jitted call: `batching="map"` (default,
+      are random perturbations of it (log-normal stiffnesses, random couplings and
+      twists), drawn from `key` (default `jax.random.key(0)`).  An explicit `n_starts`
+      solves exactly that many, in one jitted call: `batching="map"` (default,
       `jax.lax.map`, faster on CPU with the present register solver) or `"vmap"` (all
-      starts in lock step).
+      starts in lock step).  The default for finite rods is 1 start.  The default for
+      helices (`n_starts=None`) stops early: the same sequence of up to 32 starts is
+      solved in batches of 6 (one compiled program) with at most 48 steps each, until
+      two starts agree on the best minimum (cost within 1e-6 relative, parameters within
+      1e-4 of their scales, up to the symmetries; a start cut short by the 48 steps
+      counts if it agrees); the best start, if cut short, is then solved on with the full
+      `max_steps`.  If no two starts agree after all 32, all 32 are solved again with the
+      full `max_steps` (as `n_starts=32`).  Deterministic for a given `key`;
+      `n_starts`, `start_costs` and `n_agree` count the starts solved.
     - `solver`: an optimistix least-squares solver (e.g. `optimistix.LevenbergMarquardt(rtol,
       atol)`) or minimiser of $\\tfrac12\\sum r^2$ (e.g. `optimistix.OptaxMinimiser(optax.adam(
       1e-2), rtol, atol)`; helix data only: finite-rod models take least-squares solvers),
@@ -464,8 +467,9 @@ def fit_stiffness(
       read `ok`, `result`, `message`).
     - `progress`: `None` (default) shows a rich progress bar when stdout is a terminal,
       `True`/`False` force it on or off, and a callable is called as
-      `progress(done, total)` instead of a bar, with `total = n_starts + 1`: one unit per
-      start solved, one for the error analysis.  While progress is shown the starts are
+      `progress(done, total)` instead of a bar, with `total = n_starts + 1` (32 + 1 for the
+      default of helices): one unit per start solved (the default's early stop jumps to
+      the last start), one for the error analysis.  While progress is shown the starts are
       solved in up to 20 host-side batches of one compiled program (the last padded), and
       the bar moves between them, never inside the optimisation; the fit is the same.
 
@@ -493,6 +497,7 @@ def fit_stiffness(
             f"fit_stiffness: solver {method!r} is not available for finite-rod data (the forward model "
             "is differentiated in forward mode); use 'levenberg-marquardt' or 'gauss-newton'"
         )
+    adaptive = n_starts is None and model.default_starts > 1
     n_starts = model.default_starts if n_starts is None else n_starts
     if isinstance(n_starts, bool) or int(n_starts) < 1:
         raise ValueError(f"n_starts must be >= 1, got {n_starts}")
@@ -512,36 +517,105 @@ def fit_stiffness(
     n_starts = int(n_starts)
     z0s = param.starts(param.internal(p0), n_starts, key)
     with progress_bar("fit_stiffness: starts", n_starts + 1, progress, owner="fit_stiffness") as report:
-        if report.shown:
+        if adaptive:
+            solved = _adaptive_multistart(jnp.asarray(z0s), model, param, solver, int(max_steps), batching, report)
+            report.advance(n_starts - report.done)  # the starts left out by the early stop
+        elif report.shown:
             solve = lambda _, batch: (None, _multistart(batch, model, param, solver, int(max_steps), batching))  # noqa: E731
-            _, (z, cost, results, steps) = scan_in_batches(solve, None, jnp.asarray(z0s), n_starts, batch_size(n_starts), report)
+            _, solved = scan_in_batches(solve, None, jnp.asarray(z0s), n_starts, batch_size(n_starts), report)
         else:  # one call: nothing is slower for want of a bar
-            z, cost, results, steps = _multistart(jnp.asarray(z0s), model, param, solver, int(max_steps), batching)
+            solved = _multistart(jnp.asarray(z0s), model, param, solver, int(max_steps), batching)
         report.describe("fit_stiffness: error analysis")
-        fit = _best_start(
-            z, cost, results, steps, model, param, solver, method, int(max_steps), absolute_sigma, weak_threshold
-        )
+        fit = _best_start(solved, model, param, solver, method, int(max_steps), absolute_sigma, weak_threshold)
         report.advance(1)
     return raise_if_failed(fit, fit.result, "fit_stiffness: the best start did not converge") if throw else fit
 
 
-def _best_start(z, cost, results, steps, model, param, solver, method, max_steps, absolute_sigma, weak_threshold):
-    """The `StiffnessFit` of the best of the solved starts: canonical in its symmetry orbit,
-    with the starts that agree with it counted and the error analysis at it."""
-    z, cost, steps = np.asarray(z), np.asarray(cost), np.asarray(steps)
-    best = int(np.argmin(np.where(np.isfinite(cost), cost, np.inf)))
+#: The default multistart (`n_starts=None`) of a model with several default starts: the
+#: starts, in their order, in batches of `ADAPTIVE_BATCH` solved with at most `SCREEN_STEPS`
+#: steps each, until `ADAPTIVE_AGREE` starts agree on the best minimum (the best then solved on
+#: with `max_steps` more steps if it was cut short); if none
+#: do after every default start, all of them are solved again with the full step budget.
+ADAPTIVE_BATCH = 6
+ADAPTIVE_AGREE = 2
+SCREEN_STEPS = 48
+
+
+def _adaptive_multistart(z0s, model, param, solver, max_steps: int, batching: str, report):
+    """The starts `z0s` solved in batches with early stopping (`ADAPTIVE_BATCH`,
+    `SCREEN_STEPS`, `ADAPTIVE_AGREE`): what `_multistart` returns, of the starts solved.
+    A start cut short by the screening budget counts where it agrees with the best; the
+    best start, if cut short, is then solved on from where it stopped with the full budget."""
+    total = int(z0s.shape[0])
+    size = min(ADAPTIVE_BATCH, total)
+    screen = min(SCREEN_STEPS, max_steps)
+    parts, done = [], 0
+    while done < total:
+        out = _multistart(padded_batch(z0s, done, size), model, param, solver, screen, batching)
+        stop = min(done + size, total)
+        parts.append(jax.tree.map(lambda a, k=stop - done: np.asarray(a)[:k], out))
+        report.advance(stop - done)
+        done = stop
+        solved = jax.tree.map(lambda *a: np.concatenate(a), *parts)
+        best, count, _ = _agreement(solved[4], solved[1], model, param)
+        if count >= ADAPTIVE_AGREE:
+            break
+    else:
+        if screen < max_steps:  # no two starts agreed within the screening budget: all with the full one
+            return _multistart(z0s, model, param, solver, max_steps, batching)
+        return solved
+    if screen < max_steps and not bool(jax.tree.map(lambda v: v[best], solved[2]) == RESULTS.successful):
+        z, cost, result, steps, p, q = _multistart(jnp.asarray(solved[0][best:best + 1]), model, param, solver, max_steps, batching)
+        if bool(np.isfinite(cost[0])) and cost[0] <= solved[1][best]:
+            update = (z, cost, result, steps + solved[3][best], p, q)
+            solved = jax.tree.map(lambda a, u: _replace_row(a, best, np.asarray(u)[0]), solved, update)
+    return solved
+
+
+def _replace_row(a, i, row):
+    a = np.array(a)
+    a[i] = row
+    return a
+
+
+def _agreement(p_all, cost, model, param):
+    """The best of the starts with full physical vectors `p_all` and costs `cost`
+    (non-finite: failed), its canonical member and how many starts reached the best minimum
+    up to the symmetries: (best, count, p_best)."""
+    cost = np.where(np.isfinite(cost), cost, np.inf)
+    best = int(np.argmin(cost))
     frame_observed = model.frame_observed
-    p_all, q_all = (np.asarray(a) for a in _physical_values(jnp.asarray(z), param))
-    p_best = canonical(p_all[best], param, frame_observed)
-    # Starts that reached the best minimum up to the symmetries.
+    symmetric = bool(symmetries(param, frame_observed))  # else every orbit is the point itself
+    p_best = canonical(p_all[best], param, frame_observed) if symmetric else np.asarray(p_all[best], float)
+    if not np.isfinite(cost[best]):
+        return best, 0, p_best
     scale = param.scales(PARAMETER_NAMES)
-    agree = sum(
-        1
-        for i in range(len(cost))
-        if np.isfinite(cost[i])
-        and abs(cost[i] - cost[best]) <= 1e-6 * (1 + cost[best])
-        and np.max(np.abs(closest_in_orbit(p_all[i], p_best, param, frame_observed) - p_best) / scale) <= 1e-4
-    )
+    near = np.flatnonzero(np.abs(cost - cost[best]) <= 1e-6 * (1 + cost[best]))
+    closest = (lambda p: closest_in_orbit(p, p_best, param, frame_observed)) if symmetric else (lambda p: p)  # noqa: E731
+    count = sum(1 for i in near if np.max(np.abs(closest(p_all[i]) - p_best) / scale) <= 1e-4)
+    return best, count, p_best
+
+
+def _fitted_rod(p):
+    """The `Rod` of the full parameter vector `p` (NumPy), checked on the host (a `Rod`'s
+    own check costs milliseconds of small device operations)."""
+    p = np.asarray(p, float)
+    if not bool(_positive_definite(*p[:5], p[5:])):
+        return rod_from_vector(p, checked=True)  # raises its error
+    dtype = float_dtype()
+    leaves = jax.device_put([np.asarray(x, dtype) for x in (*p[:5], p[5:])])  # one transfer, no device-side slicing
+    return jax.tree_util.tree_unflatten(_rod_treedef(), leaves)
+
+
+def _best_start(solved, model, param, solver, method, max_steps, absolute_sigma, weak_threshold):
+    """The `StiffnessFit` of the best of the solved starts (what `_multistart` returns):
+    canonical in its symmetry orbit, with the starts that agree with it counted and the
+    error analysis at it."""
+    _, cost, results, steps, p_all, q_all = solved
+    cost, steps, p_all, q_all = (np.asarray(a) for a in (cost, steps, p_all, q_all))
+    frame_observed = model.frame_observed
+    # Starts that reached the best minimum up to the symmetries.
+    best, agree, p_best = _agreement(p_all, cost, model, param)
     q = np.concatenate([[p_best[PARAMETER_NAMES.index(n)] for n in param.free], q_all[best, len(param.free):]])
     J, (r, predicted) = jacobian_and_predictions(jnp.asarray(q), model, param)
     observed = model.observed_residuals()
@@ -555,7 +629,7 @@ def _best_start(z, cost, results, steps, model, param, solver, method, max_steps
     if not np.isfinite(analysis.cost):
         result = RESULTS.cost_not_finite
     return assemble(
-        rod_from_vector(p_best, checked=True), analysis, dict(zip(param.names, q)), r, predicted, result=result,
+        _fitted_rod(p_best), analysis, dict(zip(param.names, q)), r, predicted, result=result,
         method=method, absolute_sigma=absolute_sigma, n_steps=int(steps[best]), start_costs=cost, n_agree=agree,
         problem=FitProblem(model, param, solver, max_steps),
     )

@@ -325,10 +325,16 @@ def rod_from_vector(p: ArrayLike, *, checked: bool = False) -> Rod:
     *without* the constructor's positive-definiteness check: for parameterisations that
     guarantee it, where a check that raises inside an optimiser's trial step (or one member
     of a batch) would abort all of them; `checked=True` runs it (e.g. for values read from
-    a file)."""
+    a file).  A concrete, valid `p` is checked on the host and placed on the device in one
+    transfer (the constructor's check costs milliseconds of small device operations)."""
+    if checked and is_concrete(p) and np.shape(p) == (8,):
+        host = np.asarray(p, float)
+        if bool(_positive_definite(*host[:5], host[5:])):
+            leaves = jax.device_put([np.asarray(x, float_dtype()) for x in (*host[:5], host[5:])])
+            return jax.tree_util.tree_unflatten(_rod_treedef(), leaves)
     p = jnp.asarray(p, float_dtype())
     if checked:
-        return Rod(p[0], p[1], p[2], p[3], p[4], p[5:8])
+        return Rod(p[0], p[1], p[2], p[3], p[4], p[5:8])  # raises the constructor's error
     return jax.tree_util.tree_unflatten(_rod_treedef(), [p[0], p[1], p[2], p[3], p[4], p[5:8]])
 
 

@@ -20,9 +20,9 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
-from .._misc import float_dtype, is_concrete, write_atomically
+from .._misc import is_concrete, write_atomically
 from .._progress import ProgressArgument, batch_size, check_progress, padded_batch, progress_bar, scan_in_batches
-from .._rod import PARAMETER_NAMES, Rod, _positive_definite, _rod_treedef, rod_from_vector, rod_vector
+from .._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
 from .._status import RESULTS, message, promote, raise_if_failed, result_from_name, result_name
 from ._models import AbstractForwardModel, forward_model
 from ._parameters import Parameterisation, extra_start, resolve_fixed, start_vector
@@ -596,17 +596,6 @@ def _agreement(p_all, cost, model, param):
     return best, count, p_best
 
 
-def _fitted_rod(p):
-    """The `Rod` of the full parameter vector `p` (NumPy), checked on the host (a `Rod`'s
-    own check costs milliseconds of small device operations)."""
-    p = np.asarray(p, float)
-    if not bool(_positive_definite(*p[:5], p[5:])):
-        return rod_from_vector(p, checked=True)  # raises its error
-    dtype = float_dtype()
-    leaves = jax.device_put([np.asarray(x, dtype) for x in (*p[:5], p[5:])])  # one transfer, no device-side slicing
-    return jax.tree_util.tree_unflatten(_rod_treedef(), leaves)
-
-
 def _best_start(solved, model, param, solver, method, max_steps, absolute_sigma, weak_threshold):
     """The `StiffnessFit` of the best of the solved starts (what `_multistart` returns):
     canonical in its symmetry orbit, with the starts that agree with it counted and the
@@ -629,7 +618,7 @@ def _best_start(solved, model, param, solver, method, max_steps, absolute_sigma,
     if not np.isfinite(analysis.cost):
         result = RESULTS.cost_not_finite
     return assemble(
-        _fitted_rod(p_best), analysis, dict(zip(param.names, q)), r, predicted, result=result,
+        rod_from_vector(p_best, checked=True), analysis, dict(zip(param.names, q)), r, predicted, result=result,
         method=method, absolute_sigma=absolute_sigma, n_steps=int(steps[best]), start_costs=cost, n_agree=agree,
         problem=FitProblem(model, param, solver, max_steps),
     )

@@ -32,7 +32,10 @@ def fit(
         "stable with --compare)",
     ),
     method: str = typer.Option("levenberg-marquardt", help="levenberg-marquardt, gauss-newton, lbfgs, adam"),
-    n_starts: int = typer.Option(32, help="number of (vmapped) starts"),
+    n_starts: int | None = typer.Option(
+        None, help="number of starts (default: up to 32 for helices, stopping early once two agree on the best minimum; "
+        "1 for finite rods)",
+    ),
     seed: int = typer.Option(0, help="seed of the random starts"),
     relative_sigma: bool = typer.Option(False, "--relative-sigma", metavar="", help="scale errors by the reduced chi2"),
     errors_in_variables: bool = typer.Option(

@@ -533,9 +533,9 @@ def fit_stiffness(
 
 #: The default multistart (`n_starts=None`) of a model with several default starts: the
 #: starts, in their order, in batches of `ADAPTIVE_BATCH` solved with at most `SCREEN_STEPS`
-#: steps each, until `ADAPTIVE_AGREE` starts agree on the best minimum (the best then solved on
-#: with `max_steps` more steps if it was cut short); if none
-#: do after every default start, all of them are solved again with the full step budget.
+#: steps each, until `ADAPTIVE_AGREE` starts agree on the best minimum (the best then solved
+#: on with `max_steps` more steps if it was cut short); if none do after every default
+#: start, all of them are solved again with the full step budget.
 ADAPTIVE_BATCH = 6
 ADAPTIVE_AGREE = 2
 SCREEN_STEPS = 48

@@ -7,8 +7,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from ._compile import filter_jit
 from ._equilibria import helix_equilibria
-from ._misc import newton_iterations
 from ._roots import NUM_SLOTS
 from ._rod import Rod
 
@@ -31,11 +31,6 @@ class LoadedHelices(eqx.Module):
     stable: Bool[Array, " k"]
     valid: Bool[Array, " k"]
     count: Int[Array, ""]
-
-
-def _slot_wrench(rod, kappa, tau, slot):
-    eq = helix_equilibria(rod, kappa, tau)
-    return eq.force[..., slot], eq.moment[..., slot]
 
 
 def helices_under_load(
@@ -75,7 +70,7 @@ def helices_under_load(
     return _under_load(rod, F0, M0, box, grid, newton_steps, max_solutions, rtol)
 
 
-@eqx.filter_jit
+@filter_jit
 def _under_load(rod, F0, M0, box, grid, newton_steps, max_solutions, rtol):
     # One compiled program per (grid, newton_steps, max_solutions): the box is traced.
     dtype = F0.dtype
@@ -107,22 +102,37 @@ def _under_load(rod, F0, M0, box, grid, newton_steps, max_solutions, rtol):
     k0 = 0.5 * (ks[i] + ks[i + 1])
     t0 = 0.5 * (ts[j] + ts[j + 1])
 
-    def solve_one(k, t, s):
-        def residual(x):
-            f, mo = _slot_wrench(rod, x[0], x[1], s)
-            return jnp.stack([(f - F0) / scale_f, (mo - M0) / scale_m])
+    def residual(x, fields=("force", "moment")):
+        # The wrench of each point's own slot, relative to the target; one batch, no vmap
+        # (tracing the register solve once per batch, not once per point, is what keeps
+        # the first call short).
+        eq = helix_equilibria(rod, x[:, 0], x[:, 1], fields=fields)
+        f, mo = (jnp.take_along_axis(v, slot[:, None], axis=1)[:, 0] for v in (eq.force, eq.moment))
+        return jnp.stack([(f - F0) / scale_f, (mo - M0) / scale_m], axis=-1), eq
 
-        def in_box(new, x):
-            # Stay in the box (a step out of it keeps half the way to the wall).
-            return jnp.stack(
-                [jnp.clip(new[0], 0.5 * x[0], kappa_max * 1.5), jnp.clip(new[1], tau_lo - (tau_hi - tau_lo), tau_hi + (tau_hi - tau_lo))]
-            )
+    def newton_step(_, x):
+        # Every point is its own 2 x 2 system: two forward-mode directions give all the
+        # Jacobians at once.
+        r, linear = jax.linearize(lambda y: residual(y)[0], x)
+        unit_k = jnp.zeros_like(x).at[:, 0].set(1.0)
+        jacobian = jnp.stack([linear(unit_k), linear(1.0 - unit_k)], axis=-1)
+        det = jacobian[:, 0, 0] * jacobian[:, 1, 1] - jacobian[:, 0, 1] * jacobian[:, 1, 0]
+        dk = (jacobian[:, 1, 1] * r[:, 0] - jacobian[:, 0, 1] * r[:, 1]) / det
+        dt = (jacobian[:, 0, 0] * r[:, 1] - jacobian[:, 1, 0] * r[:, 0]) / det
+        dx = jnp.stack([dk, dt], axis=-1)
+        # A non-finite step is skipped; a step out of the box keeps half the way to the wall.
+        new = x - jnp.where(jnp.all(jnp.isfinite(dx), axis=-1, keepdims=True), dx, 0.0)
+        return jnp.stack(
+            [
+                jnp.clip(new[:, 0], 0.5 * x[:, 0], kappa_max * 1.5),
+                jnp.clip(new[:, 1], tau_lo - (tau_hi - tau_lo), tau_hi + (tau_hi - tau_lo)),
+            ],
+            axis=-1,
+        )
 
-        x = newton_iterations(residual, jnp.stack([k, t]), newton_steps, project=in_box)
-        r = residual(x)
-        return x, jnp.max(jnp.abs(r)) <= rtol
-
-    x, ok = jax.vmap(solve_one)(k0, t0, slot)
+    x = jax.lax.fori_loop(0, newton_steps, newton_step, jnp.stack([k0, t0], axis=-1))
+    r, sol = residual(x, fields=("phi", "force", "moment", "energy", "stable"))
+    ok = jnp.max(jnp.abs(r), axis=-1) <= rtol
     inside = (x[:, 0] > 0) & (x[:, 0] <= kappa_max * (1 + 1e-12)) & (x[:, 1] >= tau_lo) & (x[:, 1] <= tau_hi)
     good = used & ok & inside
     # Drop duplicates: the same slot at the same (kappa, tau) found from several cells.
@@ -135,11 +145,9 @@ def _under_load(rod, F0, M0, box, grid, newton_steps, max_solutions, rtol):
     valid = rows >= 0
     rows = jnp.where(valid, rows, 0)
     kk, tt, ss = x[rows, 0], x[rows, 1], slot[rows]
-    sol = helix_equilibria(rod, kk, tt)
 
     def pick(field):
-        val = jnp.take_along_axis(field, ss[:, None], axis=1)[:, 0]
-        return val
+        return jnp.take_along_axis(field, slot[:, None], axis=1)[rows, 0]
 
     nan = jnp.nan
     return LoadedHelices(

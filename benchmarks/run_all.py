@@ -26,7 +26,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
-BENCHMARKS = ("equilibria", "sweep", "kirchhoff", "fit", "finite", "tweezer")
+BENCHMARKS = ("equilibria", "sweep", "kirchhoff", "fit", "finite", "tweezer", "first_calls")
 
 
 def run(name: str, quick: bool) -> float:
@@ -211,7 +211,22 @@ def rows_tweezer(r):
     return out
 
 
-EXTRACT = {"equilibria": rows_equilibria, "sweep": rows_sweep, "kirchhoff": rows_kirchhoff, "fit": rows_fit, "finite": rows_finite, "tweezer": rows_tweezer}
+def rows_first_calls(r):
+    out = []
+    for case, by in r["results"].items():
+        ours, warm, default = by["options"], by["warm"], by["xla-default"]
+        where = ", one core" if r.get("one_core") else ""
+        where += f" of {r['machine']}" if r.get("machine") else ""
+        out.append(_row("first calls", f"{case}, fresh process{where}",
+                        "first call, helixrod's compiler options, empty cache", None, ours["first_wall_s"], None,
+                        "first call, XLA's default options, empty cache", None, default["first_wall_s"],
+                        note=f"second process with the cache: {warm['first_wall_s']:.2g} s (target <= 1.5 s; cold <= 5 s); "
+                        f"later calls {1e3 * ours['later_wall_s']:.3g} ms vs {1e3 * default['later_wall_s']:.3g} ms; "
+                        f"peak RSS {ours['peak_rss_gb']:.2f} vs {default['peak_rss_gb']:.2f} GB"))
+    return out
+
+
+EXTRACT = {"equilibria": rows_equilibria, "sweep": rows_sweep, "kirchhoff": rows_kirchhoff, "fit": rows_fit, "finite": rows_finite, "tweezer": rows_tweezer, "first_calls": rows_first_calls}
 
 
 def _fmt(x, kind):

@@ -11,7 +11,6 @@ $C = K_{13}(\\tau - \\hat u_3) - K_1 \\hat u_1$ is solved by `helixrod._roots`.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from collections.abc import Sequence
 
@@ -21,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from ._compile import jit
 from ._roots import register_roots
 from ._rod import Rod
 
@@ -163,7 +163,7 @@ def helix_equilibria(rod: Rod, kappa: ArrayLike, tau: ArrayLike, *, fields: Sequ
 _CPU_CHUNK = 32768
 
 
-@functools.partial(jax.jit, static_argnames=("limit", "fields"))
+@jit(static_argnames=("limit", "fields"))
 def _equilibria_chunked(rod: Rod, kappa, tau, limit: int, fields: tuple[str, ...]) -> HelixEquilibria:
     """`_equilibria_flat` in chunks of at most `limit` points (one compiled program per
     shape, limit and fields: called eagerly, a loop over a fresh closure would compile
@@ -198,9 +198,11 @@ def _map_chunks(fn, args, size, limit):
     return jax.lax.fori_loop(0, count, body, out)
 
 
+@jit(static_argnames="fields")
 def _equilibria_flat(rod: Rod, kappa, tau, fields: tuple[str, ...]) -> HelixEquilibria:
     """`helix_equilibria` on flat `kappa`, `tau` of shape (n,) (rod unbatched or (n,)),
-    with only `fields` (and `valid`) set."""
+    with only `fields` (and `valid`) set; one program (an eager call is one dispatch, and
+    one entry of the persistent cache)."""
     A, B, C = register_coefficients(rod, kappa, tau)
     good = jnp.isfinite(kappa) & jnp.isfinite(tau) & (kappa >= 0)
     straight = good & (kappa == 0)

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from ._compile import filter_jit
 from ._equilibria import HelixEquilibria
 from ._geometry import helix_centreline, helix_frame
 from ._lie import BodyVelocityTerm, CommutatorFreeRK4, MuntheKaasRK, RodState, check_rotation, tangent
@@ -292,26 +293,11 @@ def solve_static(
         raise ValueError(f"solve_static: frame0 needs shape (3, 3) and x0 (3,), got {frame0.shape}, {x0.shape}")
     check_rotation(frame0, "solve_static")
 
-    finite = jnp.all(jnp.isfinite(n0)) & jnp.all(jnp.isfinite(m0))
-    good_length = jnp.isfinite(length) & (length > 0)
     if is_concrete(n0, m0) and not np.all(np.isfinite(np.concatenate([np.asarray(n0), np.asarray(m0)]))):
         raise ValueError(f"solve_static: n0 and m0 must be finite, got n0={n0}, m0={m0}")
     if is_concrete(length) and not (np.isfinite(np.asarray(length)) and np.asarray(length) > 0):
         raise ValueError(f"solve_static: length must be finite and > 0, got {length}")
-    # Invalid traced input (under vmap): integrate a harmless problem, flag it, return NaN.
-    valid = finite & good_length
-    n0 = jnp.where(valid, n0, 0.0)
-    m0 = jnp.where(valid, m0, 0.0)
-    length = jnp.where(valid, length, 1.0)
-
-    if saveat is None:
-        ts = None
-        save = diffrax.SaveAt(t1=True)
-    else:
-        ts = increasing_within(saveat, length, "saveat", "solve_static")
-        ts = jnp.where(valid, ts, jnp.linspace(0.0, 1.0, ts.shape[0], dtype=dtype))
-        save = diffrax.SaveAt(ts=ts)
-
+    ts = None if saveat is None else increasing_within(saveat, length, "saveat", "solve_static")
     # The geometric solvers' continuous extension (`LieGroupInterpolation`) keeps saved
     # frames on the group; where it is only the order-1 fallback, steps land on the save
     # points instead.
@@ -323,17 +309,44 @@ def solve_static(
                 "continuous extension, only s = length can be saved; use the adaptive mode, "
                 "interpolate=True or MuntheKaasRK(diffrax.Dopri8())"
             )
-        controller = diffrax.ConstantStepSize()
-        dt0 = length / steps
         if isinstance(steps, int):
             max_steps = max(max_steps, steps)
+    # Array tolerances: a new tolerance does not recompile.
+    solution = _integrate(
+        rod, n0, m0, length, frame0, x0, ts, jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
+        solver=solver, steps=steps, max_steps=max_steps, adjoint=adjoint, dense=dense,
+        outputs=(with_frame, store_frame, with_x),
+    )
+    return raise_if_failed(solution, solution.result, "solve_static") if throw else solution
+
+
+@filter_jit
+def _integrate(rod, n0, m0, length, frame0, x0, ts, rtol, atol, *, solver, steps, max_steps, adjoint, dense, outputs):
+    """`solve_static` after its checks, as one program of its own (an eager call is one
+    dispatch, compiled with helixrod's options)."""
+    with_frame, store_frame, with_x = outputs
+    geometric = isinstance(solver, (CommutatorFreeRK4, MuntheKaasRK))
+    dtype = n0.dtype
+    finite = jnp.all(jnp.isfinite(n0)) & jnp.all(jnp.isfinite(m0))
+    good_length = jnp.isfinite(length) & (length > 0)
+    # Invalid traced input (under vmap): integrate a harmless problem, flag it, return NaN.
+    valid = finite & good_length
+    n0 = jnp.where(valid, n0, 0.0)
+    m0 = jnp.where(valid, m0, 0.0)
+    length = jnp.where(valid, length, 1.0)
+
+    if ts is None:
+        save = diffrax.SaveAt(t1=True)
+    else:
+        ts = jnp.where(valid, ts, jnp.linspace(0.0, 1.0, ts.shape[0], dtype=dtype))
+        save = diffrax.SaveAt(ts=ts)
+    if steps is not None:
+        controller = diffrax.ConstantStepSize()
+        dt0 = length / steps
     else:
         step_ts = None if dense else ts
         dtmax = _stability_step(rod, n0, m0) if geometric else None
-        # Array tolerances: a new tolerance does not recompile.
-        controller = diffrax.PIDController(
-            rtol=jnp.asarray(rtol, dtype), atol=jnp.asarray(atol, dtype), step_ts=step_ts, dtmax=dtmax
-        )
+        controller = diffrax.PIDController(rtol=rtol, atol=atol, step_ts=step_ts, dtmax=dtmax)
         dt0 = None
 
     y0 = RodState(
@@ -374,7 +387,7 @@ def solve_static(
         valid_input=valid,
         num_steps=sol.stats["num_accepted_steps"],
     )
-    return raise_if_failed(solution, solution.result, "solve_static") if throw else solution
+    return solution
 
 
 # -- uniform helices ---------------------------------------------------------------------

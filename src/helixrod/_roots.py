@@ -50,6 +50,8 @@ import functools
 import jax
 import jax.numpy as jnp
 
+from ._compile import jit
+
 
 # Slots: 0 global minimum of W on the circle, 1 global maximum, 2 the local minimum and
 # 3 the local maximum of the inner pair (a tangent register, when there is one, in 2).
@@ -527,7 +529,7 @@ def _registers_jvp(primals, tangents):
     return out, (dphi, -sin_phi * dphi, cos_phi * dphi) + zero_bool
 
 
-@functools.partial(jax.jit, inline=True)
+@jit(inline=True)
 def register_roots(A, B, C):
     """All roots of $A \\sin 2\\varphi + B \\sin\\varphi + C\\cos\\varphi = 0$ on $[0, 2\\pi)$.
 

@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from ._compile import jit
 from ._equilibria import helix_equilibria
 from ._geometry import height_and_turns
 from ._misc import is_concrete
@@ -75,7 +76,7 @@ def _single_compliance(rod: Rod, u, length):
 
 # Compiled once per padded batch size and shared by every call (eager calls of any batch
 # up to 128 reuse one executable: compiling helix_equilibria twice over is the slow part).
-_compliance_kernel = jax.jit(jax.vmap(_single_compliance))
+_compliance_kernel = jit(jax.vmap(_single_compliance))
 
 
 def _padded_size(n: int) -> int:

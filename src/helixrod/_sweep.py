@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from ._compile import jit
 from ._equilibria import helix_equilibria
 from ._misc import write_atomically
 from ._progress import ProgressArgument, check_progress, progress_bar
@@ -139,7 +140,7 @@ def _chunk_function(point_fn: Callable, devices: tuple, chunk: int) -> Callable:
         check_vma=False,
     )
     replicated = NamedSharding(mesh, PartitionSpec())
-    return jax.jit(sharded, in_shardings=replicated, out_shardings=NamedSharding(mesh, PartitionSpec(_AXIS)))
+    return jit(sharded, in_shardings=replicated, out_shardings=NamedSharding(mesh, PartitionSpec(_AXIS)))
 
 
 def _stream(point_fn, rod, kappa, tau, trailing: Mapping, chunk_size, progress, devices, description) -> dict:

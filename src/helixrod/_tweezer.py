@@ -66,6 +66,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from ._compile import filter_jit
 from ._bvp import AXIAL_OBSERVABLES, bulk_helix_at
 from ._dna import ROOM_TEMPERATURE, helix_from_bdna
 from ._dna import kT as thermal_energy
@@ -367,7 +368,7 @@ def response_point(rod, ell, rise, force, control, torque_controlled, persistenc
     return extension, rotation, torque, phase, fraction, parts, (C0, C_eff, buckling), result
 
 
-@eqx.filter_jit
+@filter_jit
 def _responses(rod, ell, rise, force, control, by_torque: bool, n_bp, persistence_length, plectoneme_twist, kT):
     """`response_point` per point, scaled to whole molecules; `control=None`: a free swivel."""
 

@@ -61,6 +61,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._compile import filter_jit
 from .._equilibria import helix_equilibria
 from .._misc import check_integer, finite_scalar, float_dtype, solve_small
 from .._lie import hat, so3_exp
@@ -367,14 +368,14 @@ def _critical_points(rod, n, m, max_length, bisections: int, chunk_size: int):
     return jax.lax.map(lambda w: _critical_point(rod, *w, max_length, bisections), (n, m), batch_size=chunk_size)
 
 
-@eqx.filter_jit
+@filter_jit
 def _atlas(rod, kappa, tau, length, pieces: int, chunk_size: int):
     valid, stable, n, m = _registers(rod, kappa, tau)
     index, margin = _indices(rod, n, m, length, pieces, chunk_size)
     return valid, stable, index, margin, n, m
 
 
-@eqx.filter_jit
+@filter_jit
 def _critical_lengths(rod, n, m, max_length, bisections: int, chunk_size: int):
     # A program of its own: compiled into `_atlas`, beside the batched eigh of the index, it
     # deadlocked XLA's CPU thread pool (jaxlib 0.10.2, 2 cores, concurrency-optimised
@@ -384,9 +385,9 @@ def _critical_lengths(rod, n, m, max_length, bisections: int, chunk_size: int):
 
 # While progress is shown, the helices are tested in host-side batches of these programs
 # (the same two programs apart, for the same reason).
-_registers_jit = eqx.filter_jit(_registers)
-_indices_batch = eqx.filter_jit(_indices)
-_critical_batch = eqx.filter_jit(_critical_points)
+_registers_jit = filter_jit(_registers)
+_indices_batch = filter_jit(_indices)
+_critical_batch = filter_jit(_critical_points)
 
 
 def _test_helices(rod, kappa, tau, length, max_length, critical_length: bool, bisections, pieces, chunk_size, report):

@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from .._compile import filter_jit
 from .._geometry import unloaded_state
 from .._misc import check_integer, finite_scalar, float_dtype
 from .._rod import check_one_rod
@@ -146,7 +147,7 @@ def _tangent(J, previous):
     return t, sign
 
 
-@eqx.filter_jit
+@filter_jit
 def _point(z_pred, row, target, previous, problem, end_at, options):
     """Correct `z_pred` onto the branch under the constraint `row . z = target`, then the
     tangent (oriented by `previous`), the determinant's sign, the nodes and the stability

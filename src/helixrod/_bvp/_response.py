@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._compile import filter_jit
 from .._geometry import unloaded_observables, unloaded_state
 from .._lie import twist_angle, unwrap_near
 from .._misc import check_choice, finite_scalar, float_dtype, is_concrete, no_gradient
@@ -220,7 +221,7 @@ def _continuation_points(rod, length, kind, values, options: BoundaryValueOption
     return jax.lax.scan(step, carry, values)
 
 
-@eqx.filter_jit
+@filter_jit
 def _curve(rod, length, kind, values, options: BoundaryValueOptions, mode: str, hints=None, with_bulk: bool = True, guess=None):
     """Solve every point of a curve in one compiled program; `values` `(n, 4)` = (F, M, h,
     Theta) per point.  `hints` `(n,)`: rotations near which to count whole turns
@@ -235,9 +236,9 @@ def _curve(rod, length, kind, values, options: BoundaryValueOptions, mode: str, 
 
 # While progress is shown, a curve is solved in host-side batches of points, each one call
 # of the same compiled program (continuation: the carry passes from batch to batch).
-_independent_batch = eqx.filter_jit(_independent_points)
-_continuation_first = eqx.filter_jit(_continuation_start)
-_continuation_batch = eqx.filter_jit(_continuation_points)
+_independent_batch = filter_jit(_independent_points)
+_continuation_first = filter_jit(_continuation_start)
+_continuation_batch = filter_jit(_continuation_points)
 
 
 def _curve_in_batches(rod, length, kind, values, options, mode, hints, with_bulk, guess, report: ProgressReport):

@@ -24,7 +24,6 @@ also allows reverse mode.
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import diffrax
 import equinox as eqx
@@ -33,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._compile import jit
 from .._geometry import unloaded_state
 from .._kirchhoff import wrench_growth_rate
 from .._misc import finite_scalar, float_dtype, increasing_within, is_concrete, no_gradient
@@ -160,7 +160,7 @@ def ode_tolerances(options: BoundaryValueOptions, dtype):
     return jnp.concatenate([ode_tol, jacobian_tolerance(ode_tol)])
 
 
-@functools.partial(jax.jit, static_argnames="guess_kind")
+@jit(static_argnames="guess_kind")
 def as_warm_start(rod, length, start: Clamped, end: EndCondition, guess, options: BoundaryValueOptions, guess_kind="helix"):
     """`guess` (as `solve`) as a `WarmStart` (`warm_start_of`), in a program of its own: an
     eager caller passes every guess to `solve` in this one form, so the large solve program
@@ -180,7 +180,7 @@ def _stability_where_solved(rod, length, end: EndCondition, N, M0, xs, frames, r
 
 
 # In a program of its own: a finer stability test needs no new solve, and no compilation of one.
-_stability_of = jax.jit(_stability_where_solved)
+_stability_of = jit(_stability_where_solved)
 
 
 def restability(rod, length, end: EndCondition, sol, options: BoundaryValueOptions):
@@ -201,7 +201,7 @@ def solve_with_warm_start(rod, length, start: Clamped, end: EndCondition, guess,
     return solve(rod, length, start, end, guess, saveat, options, guess_kind)
 
 
-@functools.partial(jax.jit, static_argnames="guess_kind")
+@jit(static_argnames="guess_kind")
 def solve(rod, length, start: Clamped, end: EndCondition, guess, saveat, options: BoundaryValueOptions, guess_kind="helix"):
     """The solve behind `solve_boundary_value` (checked inputs; never raises: read
     `result`).  `guess`: `None` (the default guess of `guess_kind`), a `WarmStart` of as
@@ -442,7 +442,7 @@ def parse_guess(guess, owner: str):
 GROWTH_PER_SEGMENT = 3.0
 
 
-@functools.partial(jax.jit, static_argnames="guess_kind")
+@jit(static_argnames="guess_kind")
 def _guess_wrench(rod, length, start, end, guess_kind):
     warm = default_warm_start(rod, length, start, end, 1, guess_kind)
     return start.frame.T @ warm.force, start.frame.T @ warm.moment0

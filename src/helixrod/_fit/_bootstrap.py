@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from .._compile import filter_jit
 from .._progress import ProgressArgument, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import PARAMETER_NAMES, rod_vector
 from .._status import RESULTS, raise_if_failed
@@ -46,7 +47,7 @@ class Bootstrap(eqx.Module):
         return {n: (float(np.nanpercentile(v, lo)), float(np.nanpercentile(v, hi))) for n, v in self.samples.items()}
 
 
-@eqx.filter_jit
+@filter_jit
 def _refits(z0, models, param, solver, max_steps: int):
     def one(model):
         z, result, _ = minimise(z0, model, param, solver, max_steps)

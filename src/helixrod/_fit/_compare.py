@@ -32,6 +32,7 @@ import numpy as np
 from jax.scipy.stats import chi2
 from jaxtyping import Array
 
+from .._compile import filter_jit
 from .._rod import rod_vector
 from .._status import RESULTS
 from ._helix_data import HelixData
@@ -168,7 +169,7 @@ class SimulatedTest(eqx.Module):
     p_value_chi2: float
 
 
-@eqx.filter_jit
+@filter_jit
 def _replicate_costs(z0, models, param, solver, max_steps: int):
     def one(model):
         z, result, _ = minimise(z0, model, param, solver, max_steps)

@@ -20,7 +20,8 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
-from .._misc import is_concrete, write_atomically
+from .._compile import filter_jit, jit
+from .._misc import is_concrete, jacobian_forward, write_atomically
 from .._progress import ProgressArgument, batch_size, check_progress, padded_batch, progress_bar, scan_in_batches
 from .._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
 from .._status import RESULTS, message, promote, raise_if_failed, result_from_name, result_name
@@ -151,7 +152,7 @@ class StiffnessFit(eqx.Module):
             values = dict(zip(self.names, [qq[i] for i in range(len(self.names))]))
             return function(param.rod(qq), {**fixed_extra, **values})
 
-        @jax.jit
+        @jit
         def propagated(qq, cov):
             values, jacobian = derived(qq), jax.jacfwd(derived)(qq)
             return values, jax.tree.map(lambda j: jnp.sqrt(jnp.einsum("...i,ij,...j->...", j, cov, j)), jacobian)
@@ -332,7 +333,7 @@ def cost_at(z, model: AbstractForwardModel, param: Parameterisation):
     return jnp.where(jnp.isfinite(cost), cost, jnp.inf)
 
 
-@eqx.filter_jit
+@filter_jit
 def _multistart(z0s, model, param, solver, max_steps: int, batching: str):
     """Local solves from every start; returns z, cost, result, steps, the full physical
     vector and the free physical values per start.
@@ -355,7 +356,7 @@ def _multistart(z0s, model, param, solver, max_steps: int, batching: str):
     return jax.lax.map(one, z0s)
 
 
-@eqx.filter_jit
+@filter_jit
 def jacobian_and_predictions(q, model: AbstractForwardModel, param: Parameterisation):
     """Jacobian of the normalised residuals with respect to the free physical parameters,
     the residuals and the predictions, in one compiled program."""
@@ -364,7 +365,7 @@ def jacobian_and_predictions(q, model: AbstractForwardModel, param: Parameterisa
         r, predicted = evaluate(qq, model, param)
         return r, (r, predicted)
 
-    return jax.jacfwd(residuals, has_aux=True)(q)
+    return jacobian_forward(residuals, q, has_aux=True)
 
 
 def _solver(solver, rtol, atol, learning_rate):

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._compile import filter_jit
 from .._rod import PARAMETER_NAMES, rod_vector
 from .._status import RESULTS
 from ._parameters import Parameterisation
@@ -41,7 +42,7 @@ class ProfileLikelihood(eqx.Module):
     interval: tuple[float, float]
 
 
-@eqx.filter_jit
+@filter_jit
 def _profile_refits(values, z0, model, param, solver, max_steps: int, indices: tuple[int, ...], in_extra: bool):
     def one(value):
         if in_extra:

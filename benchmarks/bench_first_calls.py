@@ -1,0 +1,124 @@
+"""Benchmark: the first call of each main entry point, as a user meets it.
+
+Each case runs in a fresh Python process (imports not counted): the wall and CPU time of
+its first call (tracing, lowering, XLA compilation and the run), its peak RSS, then the
+time of a second call with new values (the compiled run alone).  Three settings, each in
+its own processes:
+
+* `options`: helixrod as shipped (its compiler options, `helixrod._compile`), cold: an
+  empty persistent compilation cache;
+* `warm`: the same with the cache the cold process filled (a second process);
+* `xla-default`: `HELIXROD_COMPILER_OPTIONS=0`, XLA's default CPU emitters, cold.
+
+The targets of issue 20: every first call <= 5 s cold and <= 1.5 s warm on 2 cores.
+
+Usage: python benchmarks/bench_first_calls.py [--quick] [--cases a,b] [--one-core]
+Writes benchmarks/results/bench_first_calls.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+CASES = {
+    "helix_equilibria": """
+rod = hr.Rod(1.0, 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
+k = np.random.default_rng(0).uniform(0, 3, 10_000)
+t = np.random.default_rng(1).uniform(-3, 3, 10_000)
+call = lambda i: hr.helix_equilibria(rod, k + 0.01 * i, t)
+""",
+    "solve_static": """
+rod = hr.Rod(1.0, 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
+call = lambda i: hr.solve_static(rod, jnp.array([0.1, -0.2, 0.5 + 0.01 * i]), jnp.array([0.3, 0.2, 0.9]), 40.0)
+""",
+    "helices_under_load": """
+rod = hr.Rod(1.0, 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
+call = lambda i: hr.helices_under_load(rod, -0.49 + 0.01 * i, 0.81, kappa_max=3.0, tau_range=(-3.0, 3.0))
+""",
+    "fit_stiffness": """
+rod = hr.Rod(1.0, 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
+rng = np.random.default_rng(0)
+kappa, tau = rng.uniform(0.3, 2.0, 60), rng.uniform(-1.5, 1.5, 60)
+eq = hr.helix_equilibria(rod, kappa, tau)
+force, moment = np.asarray(eq.force[:, 0]), np.asarray(eq.moment[:, 0])
+def call(i):
+    noise = np.random.default_rng(i).normal(size=(2, 60))
+    data = hr.HelixData(force + 0.01 * noise[0], moment + 0.01 * noise[1], kappa, tau, force_sigma=0.01, moment_sigma=0.01)
+    return hr.fit_stiffness(data, uhat=(1.0, 0.0, 0.0)).rod
+""",
+    "solve_boundary_value": """
+rod = hr.Rod(1.0, 1.5, 0.8)
+call = lambda i: hr.solve_boundary_value(rod, 1.0, end=hr.Loaded(force=(0.0, 0.0, -3.0 - 0.1 * i)))
+""",
+}
+
+RUNNER = """
+import json, resource, sys, time
+import jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_enable_x64", True)
+import helixrod as hr
+if sys.argv[1]:
+    hr.enable_compilation_cache(sys.argv[1])
+{setup}
+def timed(i):
+    wall, cpu = time.perf_counter(), time.process_time()
+    jax.block_until_ready(call(i))
+    return time.perf_counter() - wall, time.process_time() - cpu
+first_wall, first_cpu = timed(0)
+later_wall, _ = timed(1)
+rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+print(json.dumps(dict(first_wall_s=first_wall, first_cpu_s=first_cpu, later_wall_s=later_wall, peak_rss_gb=rss)))
+"""
+
+
+def run_case(name: str, cache: str, default_xla: bool, one_core: bool) -> dict:
+    env = dict(os.environ)
+    env["HELIXROD_COMPILER_OPTIONS"] = "0" if default_xla else "1"
+    command = [sys.executable, "-c", RUNNER.format(setup=CASES[name]), cache]
+    if one_core:
+        command = ["taskset", "-c", "1"] + command
+    out = subprocess.run(command, env=env, capture_output=True, text=True, check=False)
+    if out.returncode != 0:
+        raise RuntimeError(f"{name} failed:\n{out.stderr[-2000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", default=",".join(CASES))
+    parser.add_argument("--quick", action="store_true", help="the three shortest cases")
+    parser.add_argument("--one-core", action="store_true", help="pin each process to one core (taskset -c 1)")
+    args = parser.parse_args()
+    results = {}
+    print(f"{'case':22s} {'setting':12s} {'first (wall)':>12s} {'first (CPU)':>12s} {'later':>10s} {'peak RSS':>9s}")
+    names = ["helix_equilibria", "solve_static", "helices_under_load"] if args.quick else args.cases.split(",")
+    for name in names:
+        results[name] = {}
+        with tempfile.TemporaryDirectory() as cache:
+            for setting, cache_dir, default_xla in (
+                ("options", cache, False), ("warm", cache, False), ("xla-default", "", True),
+            ):
+                r = run_case(name, cache_dir, default_xla, args.one_core)
+                results[name][setting] = r
+                print(
+                    f"{name:22s} {setting:12s} {r['first_wall_s']:11.2f}s {r['first_cpu_s']:11.2f}s "
+                    f"{1e3 * r['later_wall_s']:8.1f}ms {r['peak_rss_gb']:8.2f}G",
+                    flush=True,
+                )
+    out = Path(__file__).parent / "results" / "bench_first_calls.json"
+    try:
+        cpu = next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name"))
+    except (OSError, StopIteration):
+        cpu = "unknown CPU"
+    out.write_text(json.dumps(dict(one_core=args.one_core, machine=f"{os.cpu_count()} cores ({cpu})", results=results), indent=1))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,63 @@
+"""helixrod's compiler options: passed to its own top-level programs, never to a caller's."""
+
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import helixrod as hr
+from helixrod import _compile
+
+
+def _route_with(monkeypatch, options):
+    monkeypatch.setattr(_compile, "COMPILER_OPTIONS", options)
+    return _compile.jit(lambda x: jnp.sin(x) * 2.0), _compile.filter_jit(lambda x: jnp.cos(x) + 1.0)
+
+
+def test_options_go_to_top_level_calls_only(monkeypatch):
+    # An option XLA does not know fails the compile: it shows which calls carry the options.
+    sine, cosine = _route_with(monkeypatch, {"xla_helixrod_no_such_option": True})
+    x = jnp.linspace(0.0, 1.0, 5)
+    for fn, expected, slope in ((sine, 2.0 * np.sin(x), 2.0 * np.cos(x)), (cosine, np.cos(x) + 1.0, -np.sin(x))):
+        with pytest.raises(Exception, match="No such compile option"):
+            fn(x)
+        # Inside a caller's transformation: the caller's program, compiled with its options.
+        np.testing.assert_allclose(jax.jit(lambda y: fn(y) + 1.0)(x), expected + 1.0, rtol=1e-15)
+        np.testing.assert_allclose(jax.vmap(fn)(x), expected, rtol=1e-15)
+        np.testing.assert_allclose(jax.grad(lambda y: fn(y).sum())(x), slope, rtol=1e-15, atol=1e-16)
+
+
+def test_no_options_is_the_plain_jit(monkeypatch):
+    plain_jit, plain_filter = _route_with(monkeypatch, {})
+    x = jnp.linspace(0.0, 1.0, 5)
+    np.testing.assert_allclose(plain_jit(x), 2.0 * np.sin(np.asarray(x)), rtol=1e-15)
+    np.testing.assert_allclose(plain_filter(x), np.cos(np.asarray(x)) + 1.0, rtol=1e-15)
+
+
+def test_entry_points_agree_at_top_level_and_under_a_callers_jit():
+    rod = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
+    kappa, tau = jnp.linspace(0.1, 2.0, 7), jnp.linspace(-1.5, 1.5, 7)
+    top = hr.helix_equilibria(rod, kappa, tau, fields=("phi", "force", "stable"))
+    nested = jax.jit(lambda k, t: hr.helix_equilibria(rod, k, t, fields=("phi", "force", "stable")))(kappa, tau)
+    np.testing.assert_allclose(top.phi, nested.phi, rtol=1e-13, atol=1e-14)
+    np.testing.assert_allclose(top.force, nested.force, rtol=1e-13, atol=1e-14)
+    np.testing.assert_array_equal(top.stable, nested.stable)
+    n0, m0 = jnp.array([0.1, -0.2, 0.5]), jnp.array([0.3, 0.2, 0.9])
+    top = hr.solve_static(rod, n0, m0, 5.0)
+    nested = jax.jit(lambda n: hr.solve_static(rod, n, m0, 5.0))(n0)
+    # Two programs, two roundings of an adaptive solve at tolerance 1e-12.
+    np.testing.assert_allclose(top.m, nested.m, rtol=1e-9, atol=1e-10)
+
+
+@pytest.mark.parametrize("setting", ["0", "1"])
+def test_environment_variable_turns_the_options_off(setting):
+    code = "from helixrod._compile import COMPILER_OPTIONS; print(sorted(COMPILER_OPTIONS))"
+    env = dict(os.environ, **{_compile.OPTIONS_ENVIRONMENT_VARIABLE: setting})
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    expected = "[]" if setting == "0" else str(sorted(_compile._compiler_options()))
+    assert out.stdout.strip() == expected

@@ -68,3 +68,22 @@ def test_progress_reaches_the_total_after_an_early_stop():
     assert fit.n_starts < 32
     assert calls[-1] == (33, 33) and all(t == 33 for _, t in calls)
     assert [d for d, _ in calls] == sorted(d for d, _ in calls)
+
+
+def test_a_converged_start_at_the_best_minimum_is_preferred():
+    """Of two starts at the same minimum (cost within round-off), the reported one is the
+    converged one, even where the other's cost is lower by round-off."""
+    rod, data = _problem(1000)
+    fit = hr.fit_stiffness(data, uhat=rod.uhat, n_starts=1)
+    model, param = fit.problem.model, fit.problem.parameterisation
+    p = parameter_vector(fit.rod)
+    p_all = np.stack([p, p, p * 1.5])
+    cost = float(fit.cost) * np.array([1.0, 1.0 + 1e-12, 2.0])
+    codes = jax.vmap(lambda ok: hr.RESULTS.where(ok, hr.RESULTS.successful, hr.RESULTS.max_steps_reached))
+    results = codes(jax.numpy.array([False, True, True]))
+    best, count, p_best = _pipeline._agreement(p_all, cost, model, param, results)
+    assert best == 1 and count == 2
+    np.testing.assert_allclose(p_best, p)
+    # Without a converged start at the minimum, the lowest cost stays the best.
+    results = codes(jax.numpy.array([False, False, True]))
+    assert _pipeline._agreement(p_all, cost, model, param, results)[:2] == (0, 2)

@@ -558,7 +558,7 @@ def _adaptive_multistart(z0s, model, param, solver, max_steps: int, batching: st
         report.advance(stop - done)
         done = stop
         solved = jax.tree.map(lambda *a: np.concatenate(a), *parts)
-        best, count, _ = _agreement(solved[4], solved[1], model, param)
+        best, count, _ = _agreement(solved[4], solved[1], model, param, solved[2])
         if count >= ADAPTIVE_AGREE:
             break
     else:
@@ -567,7 +567,8 @@ def _adaptive_multistart(z0s, model, param, solver, max_steps: int, batching: st
         return solved
     if screen < max_steps and not bool(jax.tree.map(lambda v: v[best], solved[2]) == RESULTS.successful):
         z, cost, result, steps, p, q = _multistart(jnp.asarray(solved[0][best:best + 1]), model, param, solver, max_steps, batching)
-        if bool(np.isfinite(cost[0])) and cost[0] <= solved[1][best]:
+        # LM accepts steps at round-off, so the same minimum may come back a little higher.
+        if bool(np.isfinite(cost[0])) and cost[0] <= solved[1][best] + 1e-6 * (1 + solved[1][best]):
             update = (z, cost, result, steps + solved[3][best], p, q)
             solved = jax.tree.map(lambda a, u: _replace_row(a, best, np.asarray(u)[0]), solved, update)
     return solved
@@ -579,22 +580,33 @@ def _replace_row(a, i, row):
     return a
 
 
-def _agreement(p_all, cost, model, param):
-    """The best of the starts with full physical vectors `p_all` and costs `cost`
-    (non-finite: failed), its canonical member and how many starts reached the best minimum
-    up to the symmetries: (best, count, p_best)."""
+def _agreement(p_all, cost, model, param, results):
+    """The best of the starts with full physical vectors `p_all`, costs `cost` (non-finite:
+    failed) and `results`, its canonical member and how many starts reached the best
+    minimum up to the symmetries: (best, count, p_best).  Of the starts at the best minimum
+    a converged one is preferred: the one of lowest cost may have been cut short while its
+    steps were at round-off."""
     cost = np.where(np.isfinite(cost), cost, np.inf)
+    converged = np.asarray(results == RESULTS.successful)
     best = int(np.argmin(cost))
     frame_observed = model.frame_observed
     symmetric = bool(symmetries(param, frame_observed))  # else every orbit is the point itself
-    p_best = canonical(p_all[best], param, frame_observed) if symmetric else np.asarray(p_all[best], float)
-    if not np.isfinite(cost[best]):
-        return best, 0, p_best
     scale = param.scales(PARAMETER_NAMES)
-    near = np.flatnonzero(np.abs(cost - cost[best]) <= 1e-6 * (1 + cost[best]))
-    closest = (lambda p: closest_in_orbit(p, p_best, param, frame_observed)) if symmetric else (lambda p: p)  # noqa: E731
-    count = sum(1 for i in near if np.max(np.abs(closest(p_all[i]) - p_best) / scale) <= 1e-4)
-    return best, count, p_best
+
+    def at_minimum_of(best):
+        p_best = canonical(p_all[best], param, frame_observed) if symmetric else np.asarray(p_all[best], float)
+        if not np.isfinite(cost[best]):
+            return p_best, []
+        near = np.flatnonzero(np.abs(cost - cost[best]) <= 1e-6 * (1 + cost[best]))
+        closest = (lambda p: closest_in_orbit(p, p_best, param, frame_observed)) if symmetric else (lambda p: p)  # noqa: E731
+        return p_best, [i for i in near if np.max(np.abs(closest(p_all[i]) - p_best) / scale) <= 1e-4]
+
+    p_best, members = at_minimum_of(best)
+    done = [i for i in members if converged[i]]
+    if not converged[best] and done:
+        best = min(done, key=lambda i: cost[i])
+        p_best, members = at_minimum_of(best)
+    return best, len(members), p_best
 
 
 def _best_start(solved, model, param, solver, method, max_steps, absolute_sigma, weak_threshold):
@@ -605,7 +617,7 @@ def _best_start(solved, model, param, solver, method, max_steps, absolute_sigma,
     cost, steps, p_all, q_all = (np.asarray(a) for a in (cost, steps, p_all, q_all))
     frame_observed = model.frame_observed
     # Starts that reached the best minimum up to the symmetries.
-    best, agree, p_best = _agreement(p_all, cost, model, param)
+    best, agree, p_best = _agreement(p_all, cost, model, param, results)
     q = np.concatenate([[p_best[PARAMETER_NAMES.index(n)] for n in param.free], q_all[best, len(param.free):]])
     J, (r, predicted) = jacobian_and_predictions(jnp.asarray(q), model, param)
     observed = model.observed_residuals()

@@ -53,14 +53,16 @@ def _compiler_options() -> dict[str, bool]:
 COMPILER_OPTIONS: dict[str, bool] = _compiler_options()
 
 
+try:  # No public JAX function tells whether a trace is active.
+    from jax._src.core import trace_state_clean as _trace_state_clean
+except ImportError:  # pragma: no cover - depends on the JAX release
+    _trace_state_clean = None
+
+
 def _at_top_level() -> bool:
-    # No public JAX function tells whether a trace is active; without this private one
-    # (moved or renamed in a later JAX) every call takes the plain path.
-    try:
-        from jax._src.core import trace_state_clean
-    except ImportError:  # pragma: no cover - depends on the JAX release
-        return False
-    return trace_state_clean()
+    # Without the private function (moved or renamed in a later JAX) every call takes the
+    # plain path.
+    return _trace_state_clean is not None and _trace_state_clean()
 
 
 def _with_options(plain, tuned):

@@ -231,6 +231,30 @@ def test_cpu_chunks_equal_one_pass(rng, monkeypatch):
                 np.testing.assert_allclose(a, b, rtol=1e-11)
 
 
+def test_chunked_linearisation_keeps_only_the_inputs(rng, monkeypatch):
+    """Linearised over a chunked batch (a fit's Levenberg--Marquardt step), each chunk is
+    recomputed in the linear map instead of keeping its intermediates: what the
+    linearisation stores is the inputs (kappa, tau: 2 numbers per point), where one pass
+    stores ~60 per point (a 1e6-helix fit's memory)."""
+    from helixrod import _equilibria
+
+    n = 4096
+    kappa, tau = jnp.asarray(rng.uniform(0.01, 3.0, n)), jnp.asarray(rng.uniform(-3.0, 3.0, n))
+    rod = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
+
+    def force(rod):
+        return hr.helix_equilibria(rod, kappa, tau, fields=("force", "moment")).force
+
+    stored = {}
+    for limit in (10**9, 512):
+        monkeypatch.setattr(_equilibria, "_CPU_CHUNK", limit)
+        _, linear = jax.linearize(force, rod)
+        stored[limit] = sum(x.nbytes for x in jax.tree.leaves(linear)) / (n * 8)
+        tangent = jax.tree.map(jnp.ones_like, rod)
+        np.testing.assert_allclose(linear(tangent), jax.jvp(force, (rod,), (tangent,))[1], rtol=1e-12, atol=1e-12)
+    assert stored[512] < 2.1 and stored[10**9] > 20
+
+
 def test_python_lists_are_arrays():
     rod = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
     listed = hr.helix_equilibria(rod, [0.5, 1.0], [[1.0], [1.5]])

@@ -192,7 +192,7 @@ def _map_chunks(fn, args, size, limit):
 
     def body(i, out):
         start = jnp.minimum(i * chunk, size - chunk)
-        values = fn(*chunk_at(start))
+        values = jax.checkpoint(fn, prevent_cse=False)(*chunk_at(start))
         return jax.tree.map(lambda o, v: jax.lax.dynamic_update_slice_in_dim(o, v, start, 0), out, values)
 
     return jax.lax.fori_loop(0, count, body, out)

@@ -144,7 +144,9 @@ class HelixModel(AbstractForwardModel):
         return self.use_register
 
     def residuals(self, rod, extra):
-        eq = helix_equilibria(rod, self.kappa, self.tau)
+        # Only the fields used: over a large data set the other fields' values (and their
+        # linearisation in the solver) would be computed and kept for nothing.
+        eq = helix_equilibria(rod, self.kappa, self.tau, fields=("force", "moment", "phi", "stable"))
         sF, sM = self.force_sigma[:, None], self.moment_sigma[:, None]
         errF = eq.force - self.force[:, None]
         errM = eq.moment - self.moment[:, None]
@@ -187,7 +189,7 @@ class HelixModel(AbstractForwardModel):
         # gradient through the propagated covariance), which also spares XLA a second
         # derivative of the register solver.
         def wrench(k, t):
-            eq = helix_equilibria(jax.lax.stop_gradient(rod), k, t)
+            eq = helix_equilibria(jax.lax.stop_gradient(rod), k, t, fields=("force", "moment"))
             return eq.force, eq.moment
 
         # One linearisation, applied to both directions (one more trace of the solver, not two).

@@ -189,8 +189,8 @@ def test_cli_tweezer_fit_on_a_subset(example, tmp_path):
 
 @pytest.mark.slow
 def test_cli_profile_likelihood(example, tmp_path):
-    """`--profile NAME` prints and saves the profile-likelihood interval (slow: the vmapped
-    refits add ~2 minutes of compilation on 2 cores)."""
+    """`--profile NAME` prints and saves the profile-likelihood interval (slow: the refits
+    add minutes of compilation and solving on 2 cores)."""
     _subset_csv(example, tmp_path / "subset.csv")
     args = ["tweezer-fit", str(tmp_path / "subset.csv"), "--out", str(tmp_path / "fit.json"), "--profile", "persistence_length"]
     result = CliRunner(env={"COLUMNS": "200"}).invoke(app, args)

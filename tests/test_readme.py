@@ -74,6 +74,7 @@ SLOW_SECTIONS = {3: "the shape fit of block 8 compiles for ~15 minutes"}
     [pytest.param(i, marks=pytest.mark.slow if i + 1 in SLOW_SECTIONS else pytest.mark.heavy) for i in range(len(_sections()))],
     ids=lambda i: f"section{i + 1}",
 )
+@pytest.mark.timeout(2400)  # a section compiles for minutes; on a loaded machine past the default 900 s
 def test_readme_blocks_run(section, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # the blocks write their files (atlas.npz, figures) here
     namespace: dict = {}

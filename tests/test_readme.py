@@ -5,7 +5,7 @@ written (together they compile most of the package).
 A block that defines every name it uses (its own imports and data) begins a new section;
 each section -- the helix blocks, the DNA blocks, the finite-rod blocks -- runs in a fresh
 namespace, so the heavy tier's workers can share them out.  The helix and DNA sections run
-in the heavy tier (about 4 and 5 minutes on one core); the finite-rod section only with
+in the heavy tier (about 4 and 5-8 minutes with another process on the other core); the finite-rod section only with
 `-m slow`: its shape fit compiles for about 15 minutes (measured 921 s on one core, the
 whole section ~20 minutes), over what the CI run can take."""
 

@@ -1,13 +1,13 @@
-"""The README's Python blocks are programs: read top to bottom in one namespace, every name
-they use is defined in them (checked statically in the default run), and they run as
-written (together they compile most of the package).
+"""The README's Python blocks are programs: every name a block uses is defined in it or in
+an earlier block of its section (checked statically in the default run), and each section
+runs as written, top to bottom in one namespace (together they compile most of the package).
 
-A block that defines every name it uses (its own imports and data) begins a new section;
-each section -- the helix blocks, the DNA blocks, the finite-rod blocks -- runs in a fresh
+A block that defines every name it uses (its own imports and data) begins a new section --
+the helix blocks, the DNA blocks, the finite-rod blocks -- and each section runs in a fresh
 namespace, so the heavy tier's workers can share them out.  The helix and DNA sections run
-in the heavy tier (about 4 and 5-8 minutes with another process on the other core); the finite-rod section only with
-`-m slow`: its shape fit compiles for about 15 minutes (measured 921 s on one core, the
-whole section ~20 minutes), over what the CI run can take."""
+in the heavy tier (about 4 and 5-8 minutes with another process on the other core); the
+finite-rod section only with `-m slow`: its shape fit compiles for about 15 minutes
+(measured 921 s on one core, the whole section ~20 minutes), over what the CI run can take."""
 
 import ast
 import builtins
@@ -71,7 +71,10 @@ SLOW_SECTIONS = {3: "the shape fit of block 8 compiles for ~15 minutes"}
 
 @pytest.mark.parametrize(
     "section",
-    [pytest.param(i, marks=pytest.mark.slow if i + 1 in SLOW_SECTIONS else pytest.mark.heavy) for i in range(len(_sections()))],
+    [
+        pytest.param(i, marks=pytest.mark.slow if i + 1 in SLOW_SECTIONS else pytest.mark.heavy)
+        for i in range(len(_sections()))
+    ],
     ids=lambda i: f"section{i + 1}",
 )
 @pytest.mark.timeout(2400)  # a section compiles for minutes; on a loaded machine past the default 900 s

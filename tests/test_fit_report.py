@@ -76,3 +76,20 @@ def test_error_analysis_of_linear_least_squares_matches_numpy_and_curve_fit(rng)
     # Weak directions: those with scaled standard error 1/s_k above the threshold (0.1).
     np.testing.assert_allclose(ident.weak_stderr, 1 / s[1 / s > 0.1], rtol=1e-12)
     assert len(ident.weak) == int(np.sum(1 / s > 0.1))
+
+
+def test_a_fit_that_misses_the_data_says_so(rng):
+    """With the sigmas trusted, a chi2 whose p-value is below `POOR_FIT_P_VALUE` is noted
+    (the README's spring fit stopped at chi2 ~ 2e7 for 115 degrees of freedom and looked
+    converged); a chi2 at its expectation, or the sigmas scaled by the fit, is not."""
+    J = rng.normal(size=(120, 5))
+    values = dict(zip(STIFFNESS, (1.0, 1.5, 0.8, 0.3, 0.2)))
+    # chi2 = 159.5 for 115 degrees of freedom: p = 0.0038 (scipy.stats.chi2.sf)
+    fine = hr.error_analysis(J, np.full(120, np.sqrt(159.5 / 120)), values, np.ones(5))
+    assert not any("does not describe" in n for n in fine.identifiability.notes)
+    # chi2 = 200: p = 1.6e-6; chi2 = 205: p = 5.0e-7 (just past the 1e-6 line)
+    assert not any("does not describe" in n for n in hr.error_analysis(J, np.full(120, np.sqrt(200 / 120)), values, np.ones(5)).identifiability.notes)
+    poor = hr.error_analysis(J, np.full(120, np.sqrt(205 / 120)), values, np.ones(5)).identifiability.notes
+    assert any("does not describe the data" in n and "115 degrees of freedom" in n for n in poor)
+    scaled = hr.error_analysis(J, np.full(120, 10.0), values, np.ones(5), absolute_sigma=False)
+    assert not any("does not describe" in n for n in scaled.identifiability.notes)

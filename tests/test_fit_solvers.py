@@ -1,15 +1,16 @@
 """helixrod's Levenberg-Marquardt: it stops at a minimum whose loss is noisy at round-off,
 where optimistix's rejects step after step, and it still rejects steps that do not
-decrease the loss."""
+decrease the loss; the residuals with a materialised Jacobian take the same steps."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import optimistix as optx
 import pytest
 from scipy.optimize import least_squares
 
-from helixrod._fit._solvers import LevenbergMarquardt, make_solver
+from helixrod._fit._solvers import LevenbergMarquardt, final_residuals, make_solver, with_materialised_jacobian
 
 T = np.linspace(0.0, 1.0, 80)
 SCALE = 3e3  # predictions ~3e3 times the residuals, as a 3 um extension measured to 3 nm
@@ -51,3 +52,28 @@ def test_make_solver_names():
     with pytest.raises(ValueError, match="solver must be one of"):
         make_solver("newton")
     jax.tree.leaves(make_solver("levenberg-marquardt"))  # a pytree, as fit problems store it
+
+
+def test_materialised_jacobian_takes_the_same_steps_and_keeps_the_final_residuals():
+    """`with_materialised_jacobian`: its JVP is `jax.jvp` of the residuals (to round-off),
+    the LM takes the same steps to the same minimum (Rosenbrock, and the noisy model), and
+    the residuals the solver ends with (`final_residuals`) are those at its value."""
+    rosenbrock = lambda y, _: jnp.stack([10 * (y[1] - y[0] ** 2), 1 - y[0]])  # noqa: E731
+    data = jnp.asarray(SCALE * (1 + 0.1 * T) + np.random.default_rng(0).normal(size=T.size))
+    for fn, y0, args in ((rosenbrock, jnp.array([-1.2, 1.0]), None), (noisy_residuals, jnp.zeros(2), data)):
+        wrapped = with_materialised_jacobian(fn)
+        point, direction = y0 + 0.3, jnp.array([0.7, -0.4])
+        value, tangent = jax.jvp(lambda y: wrapped(y, args), (point,), (direction,))
+        expected_value, expected_tangent = jax.jvp(lambda y: fn(y, args), (point,), (direction,))
+        np.testing.assert_allclose(value, expected_value, rtol=1e-14)
+        np.testing.assert_allclose(tangent, expected_tangent, rtol=1e-12, atol=1e-12 * float(jnp.max(jnp.abs(expected_tangent))))
+        solver = make_solver("levenberg-marquardt")
+        plain = optx.least_squares(fn, solver, y0, args, max_steps=200)
+        ours = optx.least_squares(wrapped, solver, y0, args, max_steps=200)
+        assert int(ours.stats["num_steps"]) == int(plain.stats["num_steps"])
+        np.testing.assert_allclose(ours.value, plain.value, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(final_residuals(ours), fn(ours.value, args), rtol=0, atol=1e-14 * SCALE)
+    with pytest.raises(NotImplementedError, match="in z only"):
+        jax.jvp(lambda d: with_materialised_jacobian(noisy_residuals)(jnp.zeros(2), d), (data,), (data,))
+    minimiser = optx.OptaxMinimiser(optax.adam(1e-2), rtol=1e-8, atol=1e-8)
+    assert final_residuals(optx.minimise(lambda y, _: jnp.sum(rosenbrock(y, None) ** 2), minimiser, jnp.zeros(2), max_steps=5, throw=False)) is None

@@ -4,10 +4,12 @@ runs as written, top to bottom in one namespace (together they compile most of t
 
 A block that defines every name it uses (its own imports and data) begins a new section --
 the helix blocks, the DNA blocks, the finite-rod blocks -- and each section runs in a fresh
-namespace, so the heavy tier's workers can share them out.  The helix and DNA sections run
-in the heavy tier (about 4 and 5-8 minutes with another process on the other core); the
-finite-rod section only with `-m slow`: its shape fit compiles for about 15 minutes
-(measured 921 s on one core, the whole section ~20 minutes), over what the CI run can take."""
+namespace, so the heavy tier's workers can share them out.  All three run in the heavy
+tier: the helix section in about 4 minutes, the DNA section in 5-8 and the finite-rod
+section in about 10 (measured 593 s on one core with another process on the other; its
+shape fit compiled for about 15 minutes until the fit's Jacobian was traced once per
+step, `with_materialised_jacobian`, and the shooting Jacobian stopped integrating the
+flows again, `shooting_jacobian`)."""
 
 import ast
 import builtins
@@ -65,18 +67,8 @@ def test_readme_blocks_define_every_name_they_use():
             assert used <= defined, f"README block {number} uses undefined names {sorted(used - defined)}"
 
 
-#: Sections (numbered from 1) left to `-m slow`, and why.
-SLOW_SECTIONS = {3: "the shape fit of block 8 compiles for ~15 minutes"}
-
-
-@pytest.mark.parametrize(
-    "section",
-    [
-        pytest.param(i, marks=pytest.mark.slow if i + 1 in SLOW_SECTIONS else pytest.mark.heavy)
-        for i in range(len(_sections()))
-    ],
-    ids=lambda i: f"section{i + 1}",
-)
+@pytest.mark.heavy
+@pytest.mark.parametrize("section", range(len(_sections())), ids=lambda i: f"section{i + 1}")
 @pytest.mark.timeout(2400)  # a section compiles for minutes; on a loaded machine past the default 900 s
 def test_readme_blocks_run(section, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # the blocks write their files (atlas.npz, figures) here

@@ -3,6 +3,7 @@ kept up to date by Broyden's secant updates, as an optimistix root finder."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import ClassVar
 
 import equinox as eqx
@@ -40,7 +41,10 @@ class LevenbergMarquardtBroyden(optx.AbstractRootFinder):
     factor `SLOW_PROGRESS` and after a step rejected with a secant Jacobian; otherwise the
     previous one with Broyden's rank-one secant update
     $J \\leftarrow J + (\\Delta f - J\\Delta y)\\Delta y^T/|\\Delta y|^2$, so that most steps cost one
-    evaluation of `fn` (one integration of the rod) instead of seven.  Terminates when
+    evaluation of `fn` (one integration of the rod) instead of seven.  `jacobian(y, args,
+    aux)`, if given, is the Jacobian at `y` from `fn`'s value `aux` there (which then is
+    evaluated once per step, outside the choice between a fresh and a secant Jacobian);
+    default: a linearisation of `fn`.  Terminates when
     $\\max|f| <$ `atol` at the best point, which it returns; the residual there is
     `sol.stats["residual"]`.  The shooting residuals are scaled to order one, so there is
     no relative tolerance (`rtol` is 0: optimistix's interface asks for one).
@@ -53,6 +57,7 @@ class LevenbergMarquardtBroyden(optx.AbstractRootFinder):
     atol: float
     norm: object = optx.max_norm
     damped: bool = True
+    jacobian: Callable | None = None
     rtol: ClassVar[float] = 0.0
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
@@ -70,19 +75,27 @@ class LevenbergMarquardtBroyden(optx.AbstractRootFinder):
         )
 
     def step(self, fn, y, args, options, state: _State, tags):
-        def linearised():
-            f, lin, aux = jax.linearize(lambda z: fn(z, args), y, has_aux=True)
-            return f, aux, jax.vmap(lin, out_axes=-1)(jnp.eye(y.size, dtype=y.dtype))
-
-        def secant():
-            f, aux = fn(y, args)
+        def secant(f):
             dy, df = y - state.y_best, f - state.f_best
             dy2 = jnp.sum(dy * dy)
             update = jnp.outer(df - state.jac_best @ dy, dy) / jnp.where(dy2 > 0, dy2, 1.0)
             good = (dy2 > 0) & jnp.all(jnp.isfinite(update))
-            return f, aux, jnp.where(good, state.jac_best + update, state.jac_best)
+            return jnp.where(good, state.jac_best + update, state.jac_best)
 
-        f, aux, jac = jax.lax.cond(state.refresh, linearised, secant)
+        if self.jacobian is None:
+
+            def linearised():
+                f, lin, aux = jax.linearize(lambda z: fn(z, args), y, has_aux=True)
+                return f, aux, jax.vmap(lin, out_axes=-1)(jnp.eye(y.size, dtype=y.dtype))
+
+            def updated():
+                f, aux = fn(y, args)
+                return f, aux, secant(f)
+
+            f, aux, jac = jax.lax.cond(state.refresh, linearised, updated)
+        else:
+            f, aux = fn(y, args)
+            jac = jax.lax.cond(state.refresh, lambda: self.jacobian(y, args, aux), lambda: secant(f))
         cost = 0.5 * jnp.sum(f * f)
         finite = jnp.all(jnp.isfinite(jac)) & jnp.isfinite(cost)
         accept = finite & (cost < state.cost_best) if self.damped else finite

@@ -94,6 +94,22 @@ def _flows_jvp(primals, tangents, *, options):
     return out, t_out
 
 
+@eqx.filter_custom_jvp
+def _given_flows(wrench, flows, jacobian):
+    """`flows` `(k, 18)`, already integrated from `wrench` `(k, 6)`, differentiated in
+    `wrench` by their Jacobian `(k, 6, 18)`: a linearisation of the shooting equations
+    with no integration in it (`shooting_jacobian`)."""
+    return flows
+
+
+@_given_flows.def_jvp
+def _given_flows_jvp(primals, tangents):
+    wrench, flows, jacobian = primals
+    t_wrench = tangents[0]
+    t_flows = jnp.zeros_like(flows) if t_wrench is None else jnp.einsum("kij,ki->kj", jacobian, t_wrench)
+    return flows, t_flows
+
+
 class ShootingArgs(eqx.Module):
     """Traced data of the shooting equations."""
 
@@ -117,16 +133,28 @@ def nodes_of(y, args: ShootingArgs, k: int):
     return N, M0, xs, frames
 
 
-def _pieces(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: bool = True):
-    """Start nodes and lab end states of every piece.  `materialise`: differentiate the
-    flows through their per-piece Jacobian (`_flows`; for the many directions of a Newton
-    step) or directly (for the few directions of a parameter derivative)."""
-    k = options.segments
+def _local_wrenches(y, args: ShootingArgs, k: int):
+    """The nodes of the pieces at `y` (`nodes_of`) and each piece's start wrench `(k, 6)` in
+    its own frame."""
     N, M0, xs, frames = nodes_of(y, args, k)
     moments = M0[None] - jnp.cross(xs - args.start.position[None], N[None])
     local = jnp.concatenate([jnp.einsum("kji,j->ki", frames, N), jnp.einsum("kji,kj->ki", frames, moments)], -1)
+    return (N, M0, xs, frames), local
+
+
+def _pieces(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: bool = True, flows_of=None):
+    """Start nodes and lab end states of every piece, and the flows `(k, 18)`.
+    `materialise`: differentiate the flows through their per-piece Jacobian (`_flows`; for
+    the many directions of a Newton step) or directly (for the few directions of a
+    parameter derivative); `flows_of`: the flows as a function of the local start wrenches
+    instead (`_given_flows`)."""
+    k = options.segments
+    nodes, local = _local_wrenches(y, args, k)
+    N, M0, xs, frames = nodes
     theta = (args.rod, args.length / k)
-    if materialise:
+    if flows_of is not None:
+        flows = flows_of(local)
+    elif materialise:
         flows = _flows(local, theta, args.ode_tol, options=options)
     else:
         flows = per_piece(lambda w: piece_flow(theta, w, options, args.ode_tol), local)
@@ -134,40 +162,68 @@ def _pieces(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: b
     x_end = xs + jnp.einsum("kij,kj->ki", frames, p)
     frame_end = frames @ R
     ends = (x_end, frame_end, jnp.einsum("kij,kj->ki", frame_end, n_end), jnp.einsum("kij,kj->ki", frame_end, m_end))
-    return (N, M0, xs, frames), ends
+    return (N, M0, xs, frames), ends, flows
 
 
-def shooting_residual(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: bool = True):
-    """The 6k shooting equations; aux: the nodes and end states."""
-    nodes, ends = _pieces(y, args, options, materialise)
+def _residual_and_flows(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: bool = True, flows_of=None):
+    """The 6k shooting equations; aux: ((nodes, ends), flows)."""
+    nodes, ends, flows = _pieces(y, args, options, materialise, flows_of)
     _, _, xs, frames = nodes
     x_end, frame_end, force_end, moment_end = ends
     junction_x = (x_end[:-1] - xs[1:]) / args.scales[0]
     junction_r = gibbs(jnp.swapaxes(frames[1:], -1, -2) @ frame_end[:-1])
     end = args.end.residual(x_end[-1], frame_end[-1], force_end[-1], moment_end[-1], args.scales)
     residual = jnp.concatenate([jnp.concatenate([junction_x, junction_r], -1).reshape(-1), end])
-    return residual, (nodes, ends)
+    return residual, ((nodes, ends), flows)
+
+
+def shooting_residual(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: bool = True):
+    """The 6k shooting equations; aux: the nodes and end states."""
+    residual, (pieces, _) = _residual_and_flows(y, args, options, materialise)
+    return residual, pieces
+
+
+def shooting_jacobian(y, args: ShootingArgs, options: BoundaryValueOptions, flows):
+    """The Jacobian of the shooting equations at `y`, `(6k, 6k)`, and that of the pieces
+    (nodes, ends; last axis `6k`), given the `flows` `(k, 18)` already integrated at `y`
+    (at `args.ode_tol[:2]`): only the flows' Jacobian is integrated (at
+    `args.ode_tol[2:]`), not the flows again."""
+    k = options.segments
+    theta = (args.rod, args.length / k)
+    _, local = _local_wrenches(y, args, k)
+    jacobian = per_piece(lambda w: flow_jacobian(theta, w, options, args.ode_tol[2:]), local)  # (k, 6, 18)
+
+    def residual(z):
+        r, (pieces, _) = _residual_and_flows(z, args, options, flows_of=lambda w: _given_flows(w, flows, jacobian))
+        return r, pieces
+
+    _, lin = jax.linearize(residual, y)
+    return jax.vmap(lin, out_axes=-1)(jnp.eye(y.size, dtype=y.dtype))
 
 
 def root(y0, args: ShootingArgs, options: BoundaryValueOptions):
     """Solve the shooting equations (no derivatives: see `implicit`).  Returns the root,
-    the pieces there (aux), the largest scaled residual, the result code and the number of
-    steps."""
-    fn = lambda y, a: shooting_residual(y, a, options)  # noqa: E731
-    solver = LevenbergMarquardtBroyden(atol=options.atol, damped=options.method != "newton")
+    the pieces (nodes, ends) and the flows there, the largest scaled residual, the result
+    code and the number of steps.  Each step integrates the flows once; a fresh Jacobian
+    integrates only their derivatives (`shooting_jacobian`)."""
+    fn = lambda y, a: _residual_and_flows(y, a, options, materialise=False)  # noqa: E731
+    jacobian = lambda y, a, aux: shooting_jacobian(y, a, options, aux[1])[0]  # noqa: E731
+    solver = LevenbergMarquardtBroyden(atol=options.atol, damped=options.method != "newton", jacobian=jacobian)
     y0, args = no_gradient((y0, args))
     sol = optx.root_find(fn, solver, y0, args, has_aux=True, max_steps=options.max_steps, throw=False)
     residual = jnp.max(jnp.abs(sol.stats["residual"]))
-    return sol.value, sol.aux, residual, sol.result, sol.stats["num_steps"]
+    pieces, flows = sol.aux
+    return sol.value, pieces, flows, residual, sol.result, sol.stats["num_steps"]
 
 
 @eqx.filter_custom_jvp
-def implicit(y, pieces, args, *, options):
+def implicit(y, pieces, flows, args, *, options):
     """The root `y` of the shooting equations at `args` and the `pieces` there, with the
     derivatives of the implicit function theorem: $\\dot y = -J^{-1}\\,\\partial_\\theta F\\,
     \\dot\\theta$ and $\\dot P = P_y\\dot y + \\partial_\\theta P\\,\\dot\\theta$, with the Jacobians
-    $J = F_y$ and $P_y$ integrated at the ODE tolerance itself (the root solve steers with
-    looser ones) and one forward-mode pass through the flows for $\\partial_\\theta$.  (Not
+    $J = F_y$ and $P_y$ from the `flows` there and their derivatives integrated at the ODE
+    tolerance itself (the root solve steers with looser ones; `shooting_jacobian`), and
+    one forward-mode pass through the flows for $\\partial_\\theta$.  (Not
     `optimistix.ImplicitAdjoint`: its linear solve raises on a non-finite input, so one
     failed point would abort a differentiated batch; here a failed point gets NaN
     derivatives.)"""
@@ -176,13 +232,12 @@ def implicit(y, pieces, args, *, options):
 
 @implicit.def_jvp
 def _implicit_jvp(primals, tangents, *, options):
-    y, pieces, args = primals
-    t_args = tangents[2]
+    y, pieces, flows, args = primals
+    t_args = tangents[3]
     if t_args is None or not jax.tree.leaves(t_args):
         return (y, pieces), jax.tree.map(jnp.zeros_like, (y, pieces))
     exact = eqx.tree_at(lambda a: a.ode_tol, args, jnp.concatenate([args.ode_tol[:2], args.ode_tol[:2]]))
-    _, lin = jax.linearize(lambda z: shooting_residual(z, exact, options), y)
-    jac, pieces_jac = jax.vmap(lin, out_axes=-1)(jnp.eye(y.size, dtype=y.dtype))
+    jac, pieces_jac = shooting_jacobian(y, exact, options, flows)
     diff, static, t_diff = _tangent_part(args, t_args)
     residual = lambda d: shooting_residual(y, eqx.combine(d, static), options, materialise=False)  # noqa: E731
     _, (b, t_pieces) = jax.jvp(residual, (diff,), (t_diff,))

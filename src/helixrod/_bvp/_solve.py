@@ -245,9 +245,9 @@ def solve(rod, length, start: Clamped, end: EndCondition, guess, saveat, options
         args = eqx.tree_at(lambda a: (a.ref_x, a.ref_frame), args, (ref_x, ref_frame))
 
     # Intermediate homotopy steps need not converge: only the last solve counts.
-    y, aux, residual, result, n = root(y0, args, options)
+    y, pieces, flows, residual, result, n = root(y0, args, options)
     steps = steps + n
-    y, (nodes, ends) = implicit(y, aux, args, options=options)
+    y, (nodes, ends) = implicit(y, pieces, flows, args, options=options)
     (N, M0, xs, frames), (x_end, frame_end, force_end, moment_end) = nodes, ends
     residual = jax.lax.stop_gradient(jnp.where(jnp.isfinite(residual) & valid, residual, jnp.inf))
     tolerance = jnp.asarray(10 * options.atol, dtype)

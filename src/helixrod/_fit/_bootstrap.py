@@ -13,7 +13,7 @@ from .._compile import filter_jit
 from .._progress import ProgressArgument, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import PARAMETER_NAMES, rod_vector
 from .._status import RESULTS, raise_if_failed
-from ._pipeline import StiffnessFit, cost_at, minimise
+from ._pipeline import StiffnessFit, minimise
 from ._symmetry import closest_in_orbit
 
 KINDS = ("cases", "parametric")
@@ -50,8 +50,8 @@ class Bootstrap(eqx.Module):
 @filter_jit
 def _refits(z0, models, param, solver, max_steps: int):
     def one(model):
-        z, result, _ = minimise(z0, model, param, solver, max_steps)
-        finite = jnp.isfinite(cost_at(z, model, param))
+        z, cost, result, _ = minimise(z0, model, param, solver, max_steps)
+        finite = jnp.isfinite(cost)
         result = RESULTS.where(finite | (result != RESULTS.successful), result, RESULTS.cost_not_finite)
         q = param.physical(z)
         return param.full(q), q, result

@@ -36,7 +36,7 @@ from .._compile import filter_jit
 from .._rod import rod_vector
 from .._status import RESULTS
 from ._helix_data import HelixData
-from ._pipeline import StiffnessFit, cost_at, fit_stiffness, minimise
+from ._pipeline import StiffnessFit, fit_stiffness, minimise
 
 #: The model classes of the reference report, as `fit_stiffness` options.
 MODEL_CLASSES = {
@@ -172,8 +172,8 @@ class SimulatedTest(eqx.Module):
 @filter_jit
 def _replicate_costs(z0, models, param, solver, max_steps: int):
     def one(model):
-        z, result, _ = minimise(z0, model, param, solver, max_steps)
-        return cost_at(z, model, param), result
+        _, cost, result, _ = minimise(z0, model, param, solver, max_steps)
+        return cost, result
 
     return jax.vmap(one)(models)
 

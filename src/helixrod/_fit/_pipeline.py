@@ -28,7 +28,7 @@ from .._status import RESULTS, message, promote, raise_if_failed, result_from_na
 from ._models import AbstractForwardModel, forward_model
 from ._parameters import Parameterisation, extra_start, resolve_fixed, start_vector
 from ._report import ErrorAnalysis, Identifiability, error_analysis
-from ._solvers import SOLVERS, make_solver
+from ._solvers import SOLVERS, final_residuals, make_solver, with_materialised_jacobian
 from ._symmetry import canonical, closest_in_orbit, symmetries
 
 BATCHING = ("map", "vmap")
@@ -311,7 +311,11 @@ def evaluate(q, model: AbstractForwardModel, param: Parameterisation):
 
 
 def minimise(z0, model: AbstractForwardModel, param: Parameterisation, solver, max_steps: int):
-    """One local solve from internal coordinates `z0`: (z, result, steps).  Pure, vmappable."""
+    """One local solve from internal coordinates `z0`: (z, cost, result, steps), the cost
+    $\\tfrac12\\sum r^2$ at z (`inf` where not finite).  Pure, vmappable.  A least-squares
+    solver sees the residuals with their Jacobian materialised (`with_materialised_jacobian`)
+    and the cost is that of the residuals it ends with (`final_residuals`): the model is
+    not evaluated again."""
 
     def fn(z, args):
         model, param = args
@@ -319,18 +323,16 @@ def minimise(z0, model: AbstractForwardModel, param: Parameterisation, solver, m
 
     args = (model, param)
     if isinstance(solver, optx.AbstractLeastSquaresSolver):
-        sol = optx.least_squares(fn, solver, z0, args, max_steps=max_steps, throw=False)
+        sol = optx.least_squares(with_materialised_jacobian(fn), solver, z0, args, max_steps=max_steps, throw=False)
+        r = final_residuals(sol)
     else:
         cost = lambda z, a: 0.5 * jnp.sum(fn(z, a) ** 2)  # noqa: E731
         sol = optx.minimise(cost, solver, z0, args, max_steps=max_steps, throw=False)
-    return sol.value, promote(sol.result), sol.stats["num_steps"]
-
-
-def cost_at(z, model: AbstractForwardModel, param: Parameterisation):
-    """$\\tfrac12\\sum r^2$ at internal coordinates `z` (`inf` where not finite)."""
-    r = evaluate(param.physical(z), model, param)[0]
+        r = None
+    if r is None:
+        r = evaluate(param.physical(sol.value), model, param)[0]
     cost = 0.5 * jnp.sum(r * r)
-    return jnp.where(jnp.isfinite(cost), cost, jnp.inf)
+    return sol.value, jnp.where(jnp.isfinite(cost), cost, jnp.inf), promote(sol.result), sol.stats["num_steps"]
 
 
 @filter_jit
@@ -345,8 +347,7 @@ def _multistart(z0s, model, param, solver, max_steps: int, batching: str):
     start, and the batched while loop runs until the slowest start stops."""
 
     def one(z0):
-        z, result, steps = minimise(z0, model, param, solver, max_steps)
-        cost = cost_at(z, model, param)
+        z, cost, result, steps = minimise(z0, model, param, solver, max_steps)
         result = RESULTS.where(jnp.isfinite(cost) | (result != RESULTS.successful), result, RESULTS.cost_not_finite)
         q = param.physical(z)
         return z, cost, result, steps, param.full(q), q
@@ -429,7 +430,9 @@ def fit_stiffness(
       (`params` has no `"K2"`; the fitted rod has it).  The model classes of
       `compare_models` are `isotropic` and `fix` patterns.
     - `init`: a `Rod` or mapping for the first start; default: an isotropic rod that fits
-      the data by linear least squares (helices: Love's formulas).  Starts 2..`n_starts`
+      the data by linear least squares (helices: Love's formulas; shapes: a rough scale,
+      refined by the cost at 0.01 to 100 times its stiffnesses, `START_SCAN_FACTORS`,
+      before the fit).  Starts 2..`n_starts`
       are random perturbations of it (log-normal stiffnesses, random couplings and
       twists), drawn from `key` (default `jax.random.key(0)`).  An explicit `n_starts`
       solves exactly that many, in one jitted call: `batching="map"` (default,
@@ -448,7 +451,7 @@ def fit_stiffness(
       1e-2), rtol, atol)`; helix data only: finite-rod models take least-squares solvers),
       or a name from `SOLVERS` (default `"levenberg-marquardt"`), built with `rtol`
       (default 1e-10), `atol` (1e-12) and, for `"adam"`, `learning_rate` (1e-2).
-      `max_steps` per start.
+      `max_steps` (>= 1) per start.
     - `absolute_sigma`: True (default) trusts the sigmas; False scales the covariance by
       the reduced $\\chi^2$ (use when the sigmas are only relative weights).
     - Helix data only: `branch` -- which register a point is matched to: `"nearest"`
@@ -502,6 +505,8 @@ def fit_stiffness(
     n_starts = model.default_starts if n_starts is None else n_starts
     if isinstance(n_starts, bool) or int(n_starts) < 1:
         raise ValueError(f"n_starts must be >= 1, got {n_starts}")
+    if isinstance(max_steps, bool) or int(max_steps) != max_steps or max_steps < 1:
+        raise ValueError(f"max_steps must be an integer >= 1, got {max_steps}")
     if batching not in BATCHING:
         raise ValueError(f"batching must be 'map' or 'vmap', got {batching!r}")
     check_progress(progress, "fit_stiffness")
@@ -513,11 +518,19 @@ def fit_stiffness(
     extra0 = extra_start(init, fixed, extra)
     if isotropic:
         p0[1] = p0[0]  # an init's K2 gives way to the tie
-    param = Parameterisation(fixed, float(np.sqrt(p0[0] * p0[1])), model.twist_scale(p0), extra, extra0, isotropic)
+    parameterisation = lambda p: Parameterisation(  # noqa: E731
+        fixed, float(np.sqrt(p[0] * p[1])), model.twist_scale(p), extra, extra0, isotropic
+    )
+    param = parameterisation(p0)
     key = jax.random.key(0) if key is None else key
     n_starts = int(n_starts)
-    z0s = param.starts(param.internal(p0), n_starts, key)
     with progress_bar("fit_stiffness: starts", n_starts + 1, progress, owner="fit_stiffness") as report:
+        if init is None and model.scan_start:
+            report.describe("fit_stiffness: start scan")
+            p0 = _scanned_start(p0, model, param)
+            param = parameterisation(p0)
+            report.describe("fit_stiffness: starts")
+        z0s = param.starts(param.internal(p0), n_starts, key)
         if adaptive:
             solved = _adaptive_multistart(jnp.asarray(z0s), model, param, solver, int(max_steps), batching, report)
             report.advance(n_starts - report.done)  # the starts left out by the early stop
@@ -530,6 +543,33 @@ def fit_stiffness(
         fit = _best_start(solved, model, param, solver, method, int(max_steps), absolute_sigma, weak_threshold)
         report.advance(1)
     return raise_if_failed(fit, fit.result, "fit_stiffness: the best start did not converge") if throw else fit
+
+
+#: Factors of the free stiffnesses of the default first start tried by the start scan of a
+#: model with `scan_start` (four decades, two points each).
+START_SCAN_FACTORS = tuple(float(f) for f in np.logspace(-2.0, 2.0, 9))
+
+
+def _scanned_start(p0, model: AbstractForwardModel, param: Parameterisation) -> np.ndarray:
+    """The full start vector `p0` with its free stiffnesses scaled by the factor of
+    `START_SCAN_FACTORS` of lowest cost (`p0` itself where no factor gives a finite one).
+    The model's default start (`isotropic_start`) is a rough estimate; a local fit from a
+    start some decades off may stop at a local minimum (the README's spring fit: from
+    the estimate 10.5, ten times the true stiffness, at chi2 ~ 2e7; from a tenth of it, at
+    the truth).  Each cost is an evaluation of `jacobian_and_predictions`, the program the
+    error analysis needs anyway: no other compilation."""
+    free = [i for i, name in enumerate(PARAMETER_NAMES[:3]) if name not in param.fixed_names]
+    observed = model.observed_residuals()
+    best, best_cost = p0, np.inf
+    for factor in START_SCAN_FACTORS:
+        p = np.array(p0, float)
+        p[free] *= factor
+        _, (r, _) = jacobian_and_predictions(jnp.asarray(param.physical(jnp.asarray(param.internal(p)))), model, param)
+        r = np.asarray(r) if observed is None else np.asarray(r)[observed]
+        cost = 0.5 * float(r @ r)
+        if np.isfinite(cost) and cost < best_cost:
+            best, best_cost = p, cost
+    return best
 
 
 #: The default multistart (`n_starts=None`) of a model with several default starts: the

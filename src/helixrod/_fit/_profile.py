@@ -26,7 +26,7 @@ from .._compile import filter_jit
 from .._rod import PARAMETER_NAMES, rod_vector
 from .._status import RESULTS
 from ._parameters import Parameterisation
-from ._pipeline import StiffnessFit, cost_at, minimise
+from ._pipeline import StiffnessFit, minimise
 
 
 class ProfileLikelihood(eqx.Module):
@@ -52,8 +52,8 @@ def _profile_refits(values, z0, model, param, solver, max_steps: int, indices: t
             held = eqx.tree_at(lambda p: p.extra_values, param, param.extra_values.at[jnp.asarray(indices)].set(value))
         else:
             held = eqx.tree_at(lambda p: p.fixed_values, param, param.fixed_values.at[jnp.asarray(indices)].set(value))
-        z, result, _ = minimise(z0, model, held, solver, max_steps)
-        return cost_at(z, model, held), result
+        _, cost, result, _ = minimise(z0, model, held, solver, max_steps)
+        return cost, result
 
     return jax.lax.map(one, values)
 

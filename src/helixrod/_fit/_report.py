@@ -8,6 +8,7 @@ from collections.abc import Mapping, Sequence
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+from jax.scipy.stats import chi2
 from jaxtyping import Array, ArrayLike, Float
 
 # A residual whose derivative exceeds this multiple of the typical (median) one is an exact
@@ -93,6 +94,12 @@ class ErrorAnalysis(eqx.Module):
     identifiability: Identifiability
 
 
+#: Below this chi2 p-value (sigmas trusted) the report notes that the fit does not describe
+#: the data: 1e-6 is a 4.9-sigma tail, which a correct model with correct sigmas gives
+#: once in a million fits.
+POOR_FIT_P_VALUE = 1e-6
+
+
 def error_analysis(
     jacobian: ArrayLike,
     residuals: ArrayLike,
@@ -117,7 +124,8 @@ def error_analysis(
     is unbounded) is treated as an exact constraint -- the limit of its weight -- because an
     SVD resolves singular values only down to eps times the largest: kept in, one such row
     makes every other direction look null.  Rows with non-finite derivatives carry no
-    information and are dropped; both are named in `notes`.  `symmetries`: descriptions of
+    information and are dropped; both are named in `notes`.  With `absolute_sigma`, a
+    $\\chi^2 = 2\\,$cost whose p-value is below `POOR_FIT_P_VALUE` is noted too.  `symmetries`: descriptions of
     exact symmetries of the model, carried into the report.
     """
     names = tuple(values)
@@ -163,6 +171,15 @@ def error_analysis(
     chi2_reduced = 2 * cost / dof if dof > 0 else np.nan
     if not absolute_sigma:
         cov = cov * chi2_reduced
+    elif dof > 0 and np.isfinite(cost):
+        p_value = float(chi2.sf(2 * cost, dof))
+        if p_value < POOR_FIT_P_VALUE:
+            notes.append(
+                f"the fit does not describe the data within their sigmas: chi2 = {2 * cost:.4g} for {dof} degrees of "
+                f"freedom (reduced {chi2_reduced:.3g}, p = {p_value:.2g}); a local minimum (try another init= or more "
+                "n_starts=), a model that does not fit, or sigmas that are too small (absolute_sigma=False scales "
+                "the error bars by the scatter)"
+            )
     var = np.diag(cov).copy()
     undetermined = np.any(np.abs(Vt[null]) > 1e-6, axis=0) if null.any() else np.zeros(p, bool)
     var[undetermined] = np.inf

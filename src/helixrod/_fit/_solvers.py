@@ -15,11 +15,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
 import optax
 import optimistix as optx
+
+from .._misc import jacobian_forward
 
 #: The solvers `fit_stiffness` knows by name (for the command line; or pass an optimistix
 #: least-squares solver or minimiser, e.g. `optimistix.OptaxMinimiser(optax.adam(1e-2), ...)`).
@@ -82,3 +85,44 @@ def make_solver(name: str, rtol: float = 1e-10, atol: float = 1e-12, learning_ra
     if name == "adam":
         return optx.OptaxMinimiser(optax.adam(learning_rate), rtol=rtol, atol=atol)
     raise ValueError(f"solver must be one of {SOLVERS} or an optimistix least-squares solver or minimiser, got {name!r}")
+
+
+def with_materialised_jacobian(fn: Callable) -> Callable:
+    """`fn(z, args)` (residuals) whose forward derivative in `z` is its Jacobian, computed
+    once (`jacobian_forward`: one linearisation, all directions in one batch) and then
+    multiplied.
+
+    An optimistix Gauss--Newton step linearises `fn` and applies the linear map in three
+    places -- the Jacobian of the QR solve (all directions), the predicted reduction of the
+    trust region (one) and `RoundoffTrustRegion`'s own prediction (one) -- and each is a
+    trace, and a compiled copy, of the forward-mode program.  For the finite-rod models
+    that is a shooting solve's tangent integrations: the README's shape fit compiled three
+    copies of them.  Here the copies are matrix products, and the state carried between
+    steps is the matrix instead of the linearisation's intermediates.  Costs the Jacobian
+    (all directions) at rejected trial points too, where one direction was enough."""
+
+    @eqx.filter_custom_jvp
+    def materialised(z, args):
+        return fn(z, args)
+
+    @materialised.def_jvp
+    def _jvp(primals, tangents):
+        z, args = primals
+        t_z, t_args = tangents
+        if jax.tree.leaves(t_args):
+            raise NotImplementedError("with_materialised_jacobian: differentiable in z only, not in args")
+        if t_z is None:
+            value = fn(z, args)
+            return value, jnp.zeros_like(value)
+        jacobian, value = jacobian_forward(lambda zz: (fn(zz, args),) * 2, z, has_aux=True)
+        return value, jacobian @ t_z
+
+    return materialised
+
+
+def final_residuals(solution: optx.Solution):
+    """The residuals at `solution.value` kept by a Gauss--Newton-type least-squares solver
+    (optimistix's `f_info` of its last accepted point), or `None` where the solver keeps
+    none (then evaluate them anew)."""
+    info = getattr(solution.state, "f_info", None)
+    return getattr(info, "residual", None)

@@ -66,6 +66,7 @@ def test_shape_fit_recovers_the_generating_rod():
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)  # about 5 minutes on a core of its own, most of it compiling
 def test_shape_fit_of_a_spring_from_the_default_start_reaches_the_truth():
     """The README's spring: the default start (`isotropic_start`, B = C = 10.5, ten times
     too stiff) stopped the fit at chi2 ~ 2e7 (K13 = -2.7, K23 = 9.6) reported as converged;

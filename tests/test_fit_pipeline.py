@@ -92,7 +92,7 @@ def test_bad_options_give_documented_errors():
         hr.fit_stiffness(data, fix={"K4": 1.0})
     with pytest.raises(ValueError, match="positive definite"):
         hr.fit_stiffness(data, init={"K1": 1.0, "K2": 1.0, "K3": 0.01, "K13": 1.0})
-    for steps in (0, 2.5, True):
+    for steps in (0, 2.5, True, "64"):
         with pytest.raises(ValueError, match="max_steps must be an integer >= 1"):
             hr.fit_stiffness(data, max_steps=steps)
 

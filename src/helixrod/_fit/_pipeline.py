@@ -505,7 +505,7 @@ def fit_stiffness(
     n_starts = model.default_starts if n_starts is None else n_starts
     if isinstance(n_starts, bool) or int(n_starts) < 1:
         raise ValueError(f"n_starts must be >= 1, got {n_starts}")
-    if isinstance(max_steps, bool) or int(max_steps) != max_steps or max_steps < 1:
+    if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
         raise ValueError(f"max_steps must be an integer >= 1, got {max_steps}")
     if batching not in BATCHING:
         raise ValueError(f"batching must be 'map' or 'vmap', got {batching!r}")
@@ -559,6 +559,8 @@ def _scanned_start(p0, model: AbstractForwardModel, param: Parameterisation) -> 
     the truth).  Each cost is an evaluation of `jacobian_and_predictions`, the program the
     error analysis needs anyway: no other compilation."""
     free = [i for i, name in enumerate(PARAMETER_NAMES[:3]) if name not in param.fixed_names]
+    if not free:
+        return p0
     observed = model.observed_residuals()
     best, best_cost = p0, np.inf
     for factor in START_SCAN_FACTORS:

@@ -36,15 +36,15 @@ class LevenbergMarquardtBroyden(optx.AbstractRootFinder):
     lowers $\\tfrac12|f|^2$ (then the damping $\\lambda$ shrinks tenfold) or rejects it (the
     step is retried from the best point with $\\lambda$ ten times larger); the step solves
     $(J^TJ + \\lambda\\,\\mathrm{diag}J^TJ)\\,\\delta = -J^Tf$, Newton's step as $\\lambda\\to 0$
-    (`damped=False`: plain Newton steps, always accepted).  The Jacobian $J$ is a full
-    linearisation of `fn` at the first point, after a step that reduced $|f|$ by less than a
+    (`damped=False`: plain Newton steps, always accepted).  The Jacobian $J$ is a fresh
+    one (`jacobian`) at the first point, after a step that reduced $|f|$ by less than a
     factor `SLOW_PROGRESS` and after a step rejected with a secant Jacobian; otherwise the
     previous one with Broyden's rank-one secant update
     $J \\leftarrow J + (\\Delta f - J\\Delta y)\\Delta y^T/|\\Delta y|^2$, so that most steps cost one
     evaluation of `fn` (one integration of the rod) instead of seven.  `jacobian(y, args,
-    aux)`, if given, is the Jacobian at `y` from `fn`'s value `aux` there (which then is
-    evaluated once per step, outside the choice between a fresh and a secant Jacobian);
-    default: a linearisation of `fn`.  Terminates when
+    aux)` is the fresh Jacobian at `y`, given `fn`'s aux there (the shooting equations pass
+    the flows already integrated, `shooting_jacobian`, so `fn` is evaluated once per step,
+    outside the choice between a fresh and a secant Jacobian).  Terminates when
     $\\max|f| <$ `atol` at the best point, which it returns; the residual there is
     `sol.stats["residual"]`.  The shooting residuals are scaled to order one, so there is
     no relative tolerance (`rtol` is 0: optimistix's interface asks for one).
@@ -55,9 +55,9 @@ class LevenbergMarquardtBroyden(optx.AbstractRootFinder):
     """
 
     atol: float
+    jacobian: Callable
     norm: object = optx.max_norm
     damped: bool = True
-    jacobian: Callable | None = None
     rtol: ClassVar[float] = 0.0
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
@@ -82,20 +82,8 @@ class LevenbergMarquardtBroyden(optx.AbstractRootFinder):
             good = (dy2 > 0) & jnp.all(jnp.isfinite(update))
             return jnp.where(good, state.jac_best + update, state.jac_best)
 
-        if self.jacobian is None:
-
-            def linearised():
-                f, lin, aux = jax.linearize(lambda z: fn(z, args), y, has_aux=True)
-                return f, aux, jax.vmap(lin, out_axes=-1)(jnp.eye(y.size, dtype=y.dtype))
-
-            def updated():
-                f, aux = fn(y, args)
-                return f, aux, secant(f)
-
-            f, aux, jac = jax.lax.cond(state.refresh, linearised, updated)
-        else:
-            f, aux = fn(y, args)
-            jac = jax.lax.cond(state.refresh, lambda: self.jacobian(y, args, aux), lambda: secant(f))
+        f, aux = fn(y, args)
+        jac = jax.lax.cond(state.refresh, lambda: self.jacobian(y, args, aux), lambda: secant(f))
         cost = 0.5 * jnp.sum(f * f)
         finite = jnp.all(jnp.isfinite(jac)) & jnp.isfinite(cost)
         accept = finite & (cost < state.cost_best) if self.damped else finite

@@ -566,7 +566,7 @@ def _scanned_start(p0, model: AbstractForwardModel, param: Parameterisation) -> 
     for factor in START_SCAN_FACTORS:
         p = np.array(p0, float)
         p[free] *= factor
-        _, (r, _) = jacobian_and_predictions(jnp.asarray(param.physical(jnp.asarray(param.internal(p)))), model, param)
+        _, (r, _) = jacobian_and_predictions(param.physical(jnp.asarray(param.internal(p))), model, param)
         r = np.asarray(r) if observed is None else np.asarray(r)[observed]
         cost = 0.5 * float(r @ r)
         if np.isfinite(cost) and cost < best_cost:

@@ -125,8 +125,8 @@ def error_analysis(
     SVD resolves singular values only down to eps times the largest: kept in, one such row
     makes every other direction look null.  Rows with non-finite derivatives carry no
     information and are dropped; both are named in `notes`.  With `absolute_sigma`, a
-    $\\chi^2 = 2\\,$cost whose p-value is below `POOR_FIT_P_VALUE` is noted too.  `symmetries`: descriptions of
-    exact symmetries of the model, carried into the report.
+    $\\chi^2 = 2\\,$cost whose p-value is below `POOR_FIT_P_VALUE` is noted too.
+    `symmetries`: descriptions of exact symmetries of the model, carried into the report.
     """
     names = tuple(values)
     q = np.array([float(values[n]) for n in names])

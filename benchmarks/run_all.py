@@ -222,7 +222,9 @@ def rows_first_calls(r):
                         "first call, XLA's default options, empty cache", None, default["first_wall_s"],
                         note=f"second process with the cache: {warm['first_wall_s']:.2g} s (target <= 1.5 s; cold <= 5 s); "
                         f"later calls {1e3 * ours['later_wall_s']:.3g} ms vs {1e3 * default['later_wall_s']:.3g} ms; "
-                        f"peak RSS {ours['peak_rss_gb']:.2f} vs {default['peak_rss_gb']:.2f} GB"))
+                        f"peak RSS {ours['peak_rss_gb']:.2f} vs {default['peak_rss_gb']:.2f} GB"
+                        + (f"; JAX_DISABLE_MOST_OPTIMIZATIONS=1: first call {by['low-opt']['first_wall_s']:.2g} s, "
+                           f"later calls {1e3 * by['low-opt']['later_wall_s']:.3g} ms" if "low-opt" in by else "")))
     return out
 
 

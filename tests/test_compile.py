@@ -38,17 +38,28 @@ def test_no_options_is_the_plain_jit(monkeypatch):
     np.testing.assert_allclose(plain_filter(x), np.cos(np.asarray(x)) + 1.0, rtol=1e-15)
 
 
+# XLA's default compilation, whatever the test run's own settings (tests/conftest.py):
+# what a caller's `jax.jit` gets.
+XLA_DEFAULTS = {"xla_backend_optimization_level": 3, "xla_llvm_disable_expensive_passes": False}
+XLA_DEFAULTS.update({name: not value for name, value in _compile.COMPILER_OPTIONS.items()})
+
+
+@pytest.mark.heavy  # compiles two entry points with XLA's full optimisation (~22 s)
 def test_entry_points_agree_at_top_level_and_under_a_callers_jit():
+    """helixrod's top-level programs (its `COMPILER_OPTIONS`) against the same functions
+    inside a caller's program compiled with XLA's defaults."""
     rod = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
     kappa, tau = jnp.linspace(0.1, 2.0, 7), jnp.linspace(-1.5, 1.5, 7)
     top = hr.helix_equilibria(rod, kappa, tau, fields=("phi", "force", "stable"))
-    nested = jax.jit(lambda k, t: hr.helix_equilibria(rod, k, t, fields=("phi", "force", "stable")))(kappa, tau)
+    nested = jax.jit(
+        lambda k, t: hr.helix_equilibria(rod, k, t, fields=("phi", "force", "stable")), compiler_options=XLA_DEFAULTS
+    )(kappa, tau)
     np.testing.assert_allclose(top.phi, nested.phi, rtol=1e-13, atol=1e-14)
     np.testing.assert_allclose(top.force, nested.force, rtol=1e-13, atol=1e-14)
     np.testing.assert_array_equal(top.stable, nested.stable)
     n0, m0 = jnp.array([0.1, -0.2, 0.5]), jnp.array([0.3, 0.2, 0.9])
     top = hr.solve_static(rod, n0, m0, 5.0)
-    nested = jax.jit(lambda n: hr.solve_static(rod, n, m0, 5.0))(n0)
+    nested = jax.jit(lambda n: hr.solve_static(rod, n, m0, 5.0), compiler_options=XLA_DEFAULTS)(n0)
     # Two programs, two roundings of an adaptive solve at tolerance 1e-12.
     np.testing.assert_allclose(top.m, nested.m, rtol=1e-9, atol=1e-10)
 

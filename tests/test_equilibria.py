@@ -200,6 +200,7 @@ def test_exceptional_families(rng):
     assert float(jnp.abs(hr.helix_residual(rod, u, n)).max()) < 1e-14 * scale
 
 
+@pytest.mark.heavy  # compiles the batch four times more, with chunk sizes of its own (~25 s)
 def test_cpu_chunks_equal_one_pass(rng, monkeypatch):
     """Large batches run a chunk at a time on a CPU (the last chunk overlapping); values
     and gradients equal one pass to rounding, for a plain and a batched rod."""
@@ -231,6 +232,7 @@ def test_cpu_chunks_equal_one_pass(rng, monkeypatch):
                 np.testing.assert_allclose(a, b, rtol=1e-11)
 
 
+@pytest.mark.heavy  # two linearisations with chunk sizes of their own (~20 s)
 def test_chunked_linearisation_keeps_only_the_inputs(rng, monkeypatch):
     """Linearised over a chunked batch (a fit's Levenberg--Marquardt step), each chunk is
     recomputed in the linear map instead of keeping its intermediates: what the

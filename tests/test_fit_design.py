@@ -75,7 +75,8 @@ def test_designs_beat_uniform_grids_and_match_the_fit(rng):
         assert float(fit.stderr[name]) == pytest.approx(float(design.stderr[name]), rel=1e-6)
 
 
-def test_load_candidates_and_bad_options():
+@pytest.mark.heavy  # compiles helices_under_load over the candidate loads (~20 s)
+def test_load_candidates():
     rod = hr.Rod(1.0, 1.6, 1.3, K13=0.2, K23=0.3)
     force, moment = (a.ravel() for a in np.meshgrid(np.linspace(-1.0, 1.0, 6), np.linspace(0.2, 2.0, 6)))
     force, moment = np.append(force, 50.0), np.append(moment, 0.0)  # a load no helix in the box holds
@@ -85,6 +86,12 @@ def test_load_candidates_and_bad_options():
     # The chosen helices hold the chosen loads.
     np.testing.assert_allclose(design.force, force[design.index], rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(design.moment, moment[design.index], rtol=1e-8, atol=1e-10)
+    assert "rank 5 of 5" in design.summary()
+
+
+def test_bad_options():
+    rod = hr.Rod(1.0, 1.6, 1.3, K13=0.2, K23=0.3)
+    force, moment = np.linspace(-1.0, 1.0, 6), np.linspace(0.2, 2.0, 6)
     with pytest.raises(ValueError, match="need kappa_max= and tau_range="):
         hr.design_experiment(rod, {"force": force, "moment": moment}, 4)
     with pytest.raises(ValueError, match="not in the model class"):
@@ -97,4 +104,3 @@ def test_load_candidates_and_bad_options():
         hr.design_experiment(rod, (KAPPA, TAU), 4, observe=("kappa", "tau"))
     with pytest.raises(ValueError, match="kappa must be > 0"):
         hr.design_experiment(rod, (np.array([0.0, 1.0]), np.array([1.0, 1.0])), 1)
-    assert "rank 5 of 5" in design.summary()

@@ -101,7 +101,9 @@ def test_no_gradient_stops_floating_point_leaves_only():
 
 
 def test_solve_small_matches_lapack_and_pivots(rng):
-    solve_small = _misc.solve_small
+    # Jitted, as inside the models that use it (eagerly, each unrolled step of the
+    # elimination is compiled on its own: ~30 s of this test).
+    solve_small = jax.jit(_misc.solve_small)
 
     for n in (1, 2, 5, 6):
         A = rng.normal(size=(n, n)) + n * np.eye(n)
@@ -121,16 +123,19 @@ def test_solve_small_matches_lapack_and_pivots(rng):
 
 
 def test_small_inverse_determinant_and_matrix_right_hand_sides_match_lapack(rng):
+    solve_small, inverse_small, determinant_small = (
+        jax.jit(fn) for fn in (_misc.solve_small, _misc.inverse_small, _misc.determinant_small)
+    )
     for n in (1, 3, 6, 12):
         A = rng.normal(size=(n, n))
         B = rng.normal(size=(n, 4))
-        np.testing.assert_allclose(_misc.solve_small(A, B), np.linalg.solve(A, B), rtol=1e-10, atol=1e-12)
-        np.testing.assert_allclose(_misc.inverse_small(A), np.linalg.inv(A), rtol=1e-10, atol=1e-12)
-        assert float(_misc.determinant_small(A)) == pytest.approx(np.linalg.det(A), rel=1e-12)
+        np.testing.assert_allclose(solve_small(A, B), np.linalg.solve(A, B), rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(inverse_small(A), np.linalg.inv(A), rtol=1e-10, atol=1e-12)
+        assert float(determinant_small(A)) == pytest.approx(np.linalg.det(A), rel=1e-12)
     # The sign of the determinant follows the row exchanges.
     swap = np.array([[0.0, 1.0], [1.0, 0.0]])
-    assert float(_misc.determinant_small(swap)) == -1.0
-    assert float(_misc.determinant_small(np.diag([2.0, -3.0, 0.5]))) == pytest.approx(-3.0, rel=1e-15)
+    assert float(determinant_small(swap)) == -1.0
+    assert float(determinant_small(np.diag([2.0, -3.0, 0.5]))) == pytest.approx(-3.0, rel=1e-15)
 
 
 def test_symmetric_eigenvalue_min_matches_eigvalsh(rng):

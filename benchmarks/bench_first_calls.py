@@ -10,7 +10,7 @@ its own processes:
 * `warm`: the same with the cache the cold process filled (a second process);
 * `xla-default`: `HELIXROD_COMPILER_OPTIONS=0`, XLA's default CPU emitters, cold;
 * `low-opt`: helixrod's options with JAX's `JAX_DISABLE_MOST_OPTIMIZATIONS=1` (LLVM's
-  backend at level 0, without its expensive passes; the test suite's setting), cold: the
+  backend at level 0, without its expensive passes; the quick test tier's setting), cold: the
   first call it saves against the later calls it slows.
 
 The targets of issue 20: every first call <= 5 s cold and <= 1.5 s warm on 2 cores.

@@ -11,29 +11,48 @@ from helixrod import _compile
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
-# Compiling for the test clock.  Most of the test run is XLA compiling programs that then
-# run for milliseconds, so the tests compile with little optimisation: LLVM's backend at
-# level 0 without its expensive passes (JAX's `jax_disable_most_optimizations`), and the
-# tests' own programs (their `jax.jit`, `vmap`, `grad`, eager `jvp` around helixrod's
-# functions) with helixrod's `COMPILER_OPTIONS`, as helixrod's top-level programs are.
-# Measured on one core: `helix_equilibria` of 4096 points compiles in 1.9 s instead of
-# 8.9 s; tests/test_equilibria.py runs in 122 s instead of 293 s.  Same HLO, same
-# semantics (no fast math): results differ in rounding only, and
-# tests/test_compile.py compiles a caller's program with XLA's defaults on purpose.
-# `HELIXROD_TEST_XLA_DEFAULTS=1` runs the tests with XLA's default compilation throughout.
+# Compiling for the test clock.  Most of the quick tier is XLA compiling programs that then
+# run for milliseconds, so it compiles with little optimisation: LLVM's backend at level 0
+# without its expensive passes (JAX's `jax_disable_most_optimizations`), and the tests' own
+# programs (their `jax.jit`, `vmap`, `grad`, eager `jvp` around helixrod's functions) with
+# helixrod's `COMPILER_OPTIONS`, as helixrod's top-level programs are.  Measured on one
+# core: `helix_equilibria` of 4096 points compiles in 1.9 s instead of 8.9 s;
+# tests/test_equilibria.py runs in 118 s instead of 293 s.  Same HLO, no fast math:
+# results differ in rounding only.  A run that selects heavy or slow tests (CI's second
+# tier, `-m ""`) compiles with XLA's defaults, as users do: some of its checks compare two
+# programs bit for bit, or follow a branch from a nearly singular point, where rounding
+# shows; `HELIXROD_TEST_XLA_DEFAULTS=1` asks for the defaults in any run.
 # XLA reads XLA_FLAGS once, at its first compile: set for that compile and restored, it
 # stays out of the subprocesses the tests start (the CLI, the cache, the notebooks' kernels).
 XLA_DEFAULTS_VARIABLE = "HELIXROD_TEST_XLA_DEFAULTS"
-if os.environ.get(XLA_DEFAULTS_VARIABLE, "0").strip() != "1":
+
+
+def _selects_long_tests(config) -> bool:
+    """Whether the run's marker expression (`-m`) can select a heavy or a slow test."""
+    try:
+        from _pytest.mark.expression import Expression
+    except ImportError:  # pragma: no cover - pytest moved it: compile with the defaults
+        return True
+    markexpr = config.option.markexpr
+    if not markexpr:
+        return True
+    expression = Expression.compile(markexpr)
+    return any(expression.evaluate(lambda name, mark=mark, **_: name == mark) for mark in ("heavy", "slow"))
+
+
+def pytest_configure(config):
+    if os.environ.get(XLA_DEFAULTS_VARIABLE, "0").strip() == "1" or _selects_long_tests(config):
+        return
     jax.config.update("jax_disable_most_optimizations", True)
-    _user_flags = os.environ.get("XLA_FLAGS")
-    _test_flags = " ".join(f"--{name}={str(value).lower()}" for name, value in _compile.COMPILER_OPTIONS.items())
-    os.environ["XLA_FLAGS"] = f"{_user_flags or ''} {_test_flags}".strip()
+    user_flags = os.environ.get("XLA_FLAGS")
+    test_flags = " ".join(f"--{name}={str(value).lower()}" for name, value in _compile.COMPILER_OPTIONS.items())
+    os.environ["XLA_FLAGS"] = f"{user_flags or ''} {test_flags}".strip()
     jax.block_until_ready(jax.jit(lambda x: x + 1)(np.zeros(1)))
-    if _user_flags is None:
+    if user_flags is None:
         del os.environ["XLA_FLAGS"]
     else:
-        os.environ["XLA_FLAGS"] = _user_flags
+        os.environ["XLA_FLAGS"] = user_flags
+
 
 # The CLI tests run commands in this process, and a command would turn on the persistent
 # compilation cache (the CLI's default) for the rest of the process.  It stays off

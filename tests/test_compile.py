@@ -72,3 +72,35 @@ def test_environment_variable_turns_the_options_off(setting):
     assert out.returncode == 0, out.stderr
     expected = "[]" if setting == "0" else str(sorted(_compile._compiler_options()))
     assert out.stdout.strip() == expected
+
+
+def test_small_loop_request_respects_the_environment():
+    flag = f"xla_cpu_small_while_loop_byte_threshold={_compile.SMALL_LOOP_BYTES}"
+    environ = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    assert _compile.request_small_loop_kernels(environ)
+    assert environ["XLA_FLAGS"] == f"--xla_force_host_platform_device_count=2 --xla_backend_extra_options={flag}"
+    empty = {}
+    assert _compile.request_small_loop_kernels(empty) and empty["XLA_FLAGS"] == f"--xla_backend_extra_options={flag}"
+    users = {"XLA_FLAGS": "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=0"}
+    assert not _compile.request_small_loop_kernels(dict(users))
+    off = {_compile.OPTIONS_ENVIRONMENT_VARIABLE: "0"}
+    assert not _compile.request_small_loop_kernels(off) and "XLA_FLAGS" not in off
+
+
+# A loop whose carry (512 doubles, 4 kB) is above XLA's default threshold (1 kB) and below
+# helixrod's: one kernel (a call marked `xla_cpu_small_call`) once helixrod is imported.
+_LOOP_PROGRAM = """
+import helixrod, jax, jax.numpy as jnp
+jax.config.update("jax_enable_x64", True)
+loop = lambda x: jax.lax.fori_loop(0, jnp.int32(x[0] > -1) * 10, lambda i, c: jnp.sin(c) * 1.1, x)
+print("xla_cpu_small_call" in jax.jit(loop).lower(jnp.ones(512)).compile().as_text())
+"""
+
+
+@pytest.mark.parametrize("setting", ["0", "1"])
+def test_import_compiles_small_loops_into_one_kernel(setting):
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env[_compile.OPTIONS_ENVIRONMENT_VARIABLE] = setting
+    out = subprocess.run([sys.executable, "-c", _LOOP_PROGRAM], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == ("True" if setting == "1" else "False")

@@ -1,10 +1,16 @@
 """helixrod: a fast, differentiable solver for elastic Kirchhoff rods and helices, in JAX.
 
 Results are quoted in float64: call ``jax.config.update("jax_enable_x64", True)`` before
-creating arrays (helixrod never changes global JAX configuration itself).
+creating arrays (helixrod does not change JAX's configuration).  On import, before anything
+is compiled, it asks XLA's CPU backend to compile loops of up to 1 MB into single kernels
+(``XLA_FLAGS``; see `helixrod._compile`; ``HELIXROD_COMPILER_OPTIONS=0`` turns it off).
 """
 
 from importlib import metadata as _metadata
+
+from . import _compile
+
+_compile.request_small_loop_kernels()
 
 from . import dna as dna, plot as plot
 from ._bvp import (

@@ -234,9 +234,12 @@ class LieGroupInterpolation(diffrax.AbstractLocalInterpolation):
 
 def _dense_info(y0, matrix, ks):
     """`LieGroupInterpolation` fields from the stage velocities `ks` ((w, v) pairs in the
-    algebra) and the continuous extension's weights `matrix` (stage x power of r)."""
-    return dict(y0=y0, k=tuple(jnp.stack([k[i] for k in ks]) for i in range(2)),
-                weights=jnp.asarray(matrix, dtype=ks[0][0].dtype))
+    algebra) and the continuous extension's weights `matrix` (stage x power of r).  Stages
+    whose weights are all zero (four of Dopri8's fourteen) are left out: every saved point
+    would otherwise multiply them by zero."""
+    used = [i for i, row in enumerate(matrix) if any(c != 0 for c in row)]
+    return dict(y0=y0, k=tuple(jnp.stack([ks[j][i] for j in used]) for i in range(2)),
+                weights=jnp.asarray([matrix[j] for j in used], dtype=ks[0][0].dtype))
 
 
 # The third-order continuous extension of the classical RK4 weights, b_i(r) = sum_j

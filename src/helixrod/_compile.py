@@ -54,16 +54,20 @@ def _version(text: str) -> tuple[int, ...]:
 OPTIONS_ENVIRONMENT_VARIABLE = "HELIXROD_COMPILER_OPTIONS"
 
 
-def _compiler_options() -> dict[str, bool]:
-    # An option XLA does not know is a compile error, so it is passed only to the jaxlib
-    # releases it was measured with.
-    if os.environ.get(OPTIONS_ENVIRONMENT_VARIABLE, "1").strip() == "0":
-        return {}
+def _settings_apply(environ=os.environ) -> bool:
+    """Whether helixrod's XLA settings apply: not with `HELIXROD_COMPILER_OPTIONS=0`, and
+    only on the jaxlib releases they were measured with (an option XLA does not know is a
+    compile error)."""
+    if environ.get(OPTIONS_ENVIRONMENT_VARIABLE, "1").strip() == "0":
+        return False
     try:
-        jaxlib_version = _version(metadata.version("jaxlib"))
+        return _version(metadata.version("jaxlib")) >= (0, 10)
     except metadata.PackageNotFoundError:
-        return {}
-    return {"xla_cpu_use_fusion_emitters": False} if jaxlib_version >= (0, 10) else {}
+        return False
+
+
+def _compiler_options() -> dict[str, bool]:
+    return {"xla_cpu_use_fusion_emitters": False} if _settings_apply() else {}
 
 
 #: XLA options of every program helixrod compiles on its own (see the module docstring).
@@ -80,15 +84,8 @@ def request_small_loop_kernels(environ=os.environ) -> bool:
     release it was measured with, or when ``XLA_FLAGS`` already sets XLA's backend extra
     options (the user's choice stands).  XLA reads the flag at the process's first
     compilation; after that it has no effect."""
-    if environ.get(OPTIONS_ENVIRONMENT_VARIABLE, "1").strip() == "0":
-        return False
-    try:
-        if _version(metadata.version("jaxlib")) < (0, 10):
-            return False
-    except metadata.PackageNotFoundError:
-        return False
     flags = environ.get("XLA_FLAGS", "")
-    if "xla_backend_extra_options" in flags:
+    if not _settings_apply(environ) or "xla_backend_extra_options" in flags:
         return False
     setting = f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold={SMALL_LOOP_BYTES}"
     environ["XLA_FLAGS"] = f"{flags} {setting}".strip()

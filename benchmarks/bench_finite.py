@@ -11,12 +11,14 @@ uhat = (0, 1, 0.3), canonical placement):
 4. single vs multiple shooting on a spring stretched at fixed rotation, 2-40 turns.
 
 Errors are against helixrod at tolerance 1e-12, itself checked against scipy at its tightest
-tolerance.  scipy integrates the same 18 unknowns (n, m, D, x) with a numpy right-hand side
+tolerance.  helixrod runs twice per tolerance: as called by default, which also tests the
+stability of the solution (`stability_pieces=16`: the conjugate-point test, which scipy does not
+do), and the solve alone (`stability_pieces=0`: the same work as `solve_bvp`).  scipy integrates the same 18 unknowns (n, m, D, x) with a numpy right-hand side
 and the same boundary conditions, started from the unloaded helix (one solve) or from the
 previous point (the curve).  Wall times: best of `--repeats` later calls (compilation
 apart).
 
-    python benchmarks/bench_finite.py [--quick]
+    python benchmarks/bench_finite.py [--quick] [--parts clamped,curve]
 """
 
 from __future__ import annotations
@@ -44,6 +46,9 @@ SPRING = hr.Rod(1.0, 1.0, 1 / 1.3, uhat=(0.0, 1.0, 0.3))
 NORM = math.hypot(1.0, 0.3)
 TURN = 2 * math.pi / NORM
 NSAVE = 41
+PARTS = ("clamped", "curve", "fit", "adjoint", "shooting")
+# helixrod as called by default (with its stability test on 16 pieces) and the solve alone.
+HELIXROD_VARIANTS = {"helixrod": 16, "helixrod-solve": 0}
 
 
 # -- the scipy peer -------------------------------------------------------------------------
@@ -101,8 +106,9 @@ def bench_clamped(tols, scipy_tols, repeats):
     length, start, end = clamped_problem()
     s = jnp.linspace(0.0, length, NSAVE)
 
-    def run(tol):
-        sol = hr.solve_boundary_value(SPRING, length, start=start, end=end, saveat=s, atol=tol, ode_rtol=tol, ode_atol=tol)
+    def run(tol, pieces=16):
+        sol = hr.solve_boundary_value(SPRING, length, start=start, end=end, saveat=s, atol=tol, ode_rtol=tol, ode_atol=tol,
+                                      stability_pieces=pieces)
         return sol
 
     t0 = time.perf_counter()
@@ -110,13 +116,14 @@ def bench_clamped(tols, scipy_tols, repeats):
     compile_s = time.perf_counter() - t0
     ref_x, ref_force = np.asarray(ref.x), np.asarray(ref.force)
     rows = []
-    for tol in tols:
-        sol = run(tol)
-        wall = best_time(lambda: run(tol).x, repeats)
-        err = float(np.abs(np.asarray(sol.x) - ref_x).max())
-        rows.append(dict(library="helixrod", tol=tol, error=err, wall_s=wall, steps=int(sol.num_steps),
-                         force_error=float(np.abs(np.asarray(sol.force) - ref_force).max())))
-        print(f"  helixrod tol={tol:7.0e}  err={err:9.2e}  {wall * 1e3:9.2f} ms  (root steps {int(sol.num_steps)})")
+    for library, pieces in HELIXROD_VARIANTS.items():
+        for tol in tols:
+            sol = run(tol, pieces)
+            wall = best_time(lambda: run(tol, pieces).x, repeats)
+            err = float(np.abs(np.asarray(sol.x) - ref_x).max())
+            rows.append(dict(library=library, tol=tol, error=err, wall_s=wall, steps=int(sol.num_steps),
+                             force_error=float(np.abs(np.asarray(sol.force) - ref_force).max())))
+            print(f"  {library:13s} tol={tol:7.0e}  err={err:9.2e}  {wall * 1e3:9.2f} ms  (root steps {int(sol.num_steps)})")
     fun = scipy_rhs(SPRING)
     bc = scipy_bc(start, "clamped", P=np.asarray(end.position), R=np.asarray(end.frame))
     s0, y0 = unloaded_guess(SPRING, length, 60)
@@ -134,14 +141,16 @@ def bench_clamped(tols, scipy_tols, repeats):
 
 
 def headline(rows):
-    """For each scipy run: the fastest helixrod run at an error no larger, and the ratio."""
+    """For each scipy run and helixrod variant: the fastest helixrod run at an error no
+    larger, and the ratio."""
     out = []
     for r in (r for r in rows if r["library"] == "scipy"):
-        ok = [h for h in rows if h["library"] == "helixrod" and h["error"] <= r["error"]]
-        if ok:
-            best = min(ok, key=lambda h: h["wall_s"])
-            out.append(dict(scipy_tol=r["tol"], scipy_error=r["error"], scipy_s=r["wall_s"], helixrod_tol=best["tol"],
-                            helixrod_error=best["error"], helixrod_s=best["wall_s"], speedup=r["wall_s"] / best["wall_s"]))
+        for library in HELIXROD_VARIANTS:
+            ok = [h for h in rows if h["library"] == library and h["error"] <= r["error"]]
+            if ok:
+                best = min(ok, key=lambda h: h["wall_s"])
+                out.append(dict(library=library, scipy_tol=r["tol"], scipy_error=r["error"], scipy_s=r["wall_s"], helixrod_tol=best["tol"],
+                                helixrod_error=best["error"], helixrod_s=best["wall_s"], speedup=r["wall_s"] / best["wall_s"]))
     return out
 
 
@@ -153,8 +162,9 @@ def bench_curve(count, tols, scipy_tols, repeats):
     _, theta0 = (float(a) for a in hr.unloaded_observables(SPRING, length))
     forces = jnp.linspace(0.0, 0.05, count)
 
-    def run(tol):
-        return hr.force_extension(SPRING, length, forces, rotation=theta0, atol=tol, ode_rtol=tol, ode_atol=tol)
+    def run(tol, pieces=16):
+        options = hr.BoundaryValueOptions(stability_pieces=pieces)
+        return hr.force_extension(SPRING, length, forces, rotation=theta0, options=options, atol=tol, ode_rtol=tol, ode_atol=tol)
 
     t0 = time.perf_counter()
     ref = jax.block_until_ready(run(1e-12))
@@ -162,12 +172,13 @@ def bench_curve(count, tols, scipy_tols, repeats):
     assert bool(jnp.all(ref.ok))
     ref_h = np.asarray(ref.extension)
     rows = []
-    for tol in tols:
-        c = run(tol)
-        wall = best_time(lambda: run(tol).extension, repeats)
-        err = float(np.abs(np.asarray(c.extension) - ref_h).max())
-        rows.append(dict(library="helixrod", tol=tol, error=err, wall_s=wall, ok=bool(jnp.all(c.ok))))
-        print(f"  helixrod tol={tol:7.0e}  err={err:9.2e}  {wall * 1e3:9.2f} ms for {count} points")
+    for library, pieces in HELIXROD_VARIANTS.items():
+        for tol in tols:
+            c = run(tol, pieces)
+            wall = best_time(lambda: run(tol, pieces).extension, repeats)
+            err = float(np.abs(np.asarray(c.extension) - ref_h).max())
+            rows.append(dict(library=library, tol=tol, error=err, wall_s=wall, ok=bool(jnp.all(c.ok))))
+            print(f"  {library:13s} tol={tol:7.0e}  err={err:9.2e}  {wall * 1e3:9.2f} ms for {count} points")
     start, _ = hr.axial_ends(SPRING, length, force=0.0, rotation=theta0)
     fun = scipy_rhs(SPRING)
     R = np.asarray(hr.axial_ends(SPRING, length, force=0.0, rotation=theta0)[1].frame)
@@ -304,7 +315,7 @@ def plot(results, path):
 
     fig, axes = plt.subplots(1, 3, figsize=(17, 4.6))
     for ax, key, title in ((axes[0], "clamped", "clamped-clamped solve (3 turns)"), (axes[1], "curve", "50-point force-extension curve")):
-        for lib, style in (("helixrod", "-o"), ("scipy", "--s")):
+        for lib, style in (("helixrod", "-o"), ("helixrod-solve", "-^"), ("scipy", "--s")):
             sel = sorted((r for r in results[key]["rows"] if r["library"] == lib), key=lambda r: r["tol"])
             ax.loglog([r["wall_s"] for r in sel], [max(r["error"], 1e-16) for r in sel], style, label=lib)
             for r in sel:
@@ -331,31 +342,42 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--quick", action="store_true", help="fewer tolerances, lengths and repeats; no adjoint comparison")
     parser.add_argument("--repeats", type=int, default=None)
+    parser.add_argument("--parts", default=",".join(PARTS),
+                        help=f"comma-separated subset of {', '.join(PARTS)}; the others keep their results from the saved JSON")
     args = parser.parse_args()
+    parts = set(args.parts.split(","))
+    if not parts <= set(PARTS):
+        parser.error(f"--parts: unknown {sorted(parts - set(PARTS))}; choose from {', '.join(PARTS)}")
     repeats = args.repeats or (3 if args.quick else 7)
     tols = [1e-6, 1e-8, 1e-10] if args.quick else [1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11]
     scipy_tols = [1e-4, 1e-6, 1e-8] if args.quick else [1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8]
-    results = {}
-    print("1. clamped-clamped solve, 3 turns (41 saved points)")
-    results["clamped"] = bench_clamped(tols, scipy_tols, repeats)
-    print("2. force-extension curve, 50 points, end rotation held")
-    results["curve"] = bench_curve(50, tols, scipy_tols[:2] if args.quick else scipy_tols[:4], repeats)
-    print("3. shape fit (2 images x 25 points, 5 stiffnesses) and its Jacobian")
-    results["fit"] = bench_fit(max(1, repeats // 2))
-    if not args.quick:  # the adjoint choice: three more compilations of ~25-50 s each
+    saved = RESULTS / "bench_finite.json"
+    results = json.loads(saved.read_text())["results"] if parts != set(PARTS) and saved.exists() else {}
+    if "clamped" in parts:
+        print("1. clamped-clamped solve, 3 turns (41 saved points)")
+        results["clamped"] = bench_clamped(tols, scipy_tols, repeats)
+    if "curve" in parts:
+        print("2. force-extension curve, 50 points, end rotation held")
+        results["curve"] = bench_curve(50, tols, scipy_tols[:2] if args.quick else scipy_tols[:4], repeats)
+    if "fit" in parts:
+        print("3. shape fit (2 images x 25 points, 5 stiffnesses) and its Jacobian")
+        results["fit"] = bench_fit(max(1, repeats // 2))
+    if "adjoint" in parts and not args.quick:  # the adjoint choice: three more compilations of ~25-50 s each
         results["adjoint"] = bench_adjoints(repeats)
-    print("4. single vs multiple shooting, spring stretched at fixed end rotation")
-    turns = [2, 5, 10, 20] if args.quick else [2, 3, 5, 7, 10, 15, 20, 30, 40]
-    results["shooting"] = bench_shooting(turns, [1.1, 1.5], [1, 4, 16])
+    if "shooting" in parts:
+        print("4. single vs multiple shooting, spring stretched at fixed end rotation")
+        turns = [2, 5, 10, 20] if args.quick else [2, 3, 5, 7, 10, 15, 20, 30, 40]
+        results["shooting"] = bench_shooting(turns, [1.1, 1.5], [1, 4, 16])
     for key in ("clamped", "curve"):
-        for h in results[key]["headline"]:
-            print(f"  {key}: scipy tol {h['scipy_tol']:.0e} (err {h['scipy_error']:.1e}, {h['scipy_s'] * 1e3:.1f} ms) vs helixrod "
+        for h in results.get(key, {}).get("headline", []):
+            print(f"  {key}: scipy tol {h['scipy_tol']:.0e} (err {h['scipy_error']:.1e}, {h['scipy_s'] * 1e3:.1f} ms) vs {h['library']} "
                   f"tol {h['helixrod_tol']:.0e} (err {h['helixrod_error']:.1e}, {h['helixrod_s'] * 1e3:.2f} ms): {h['speedup']:.0f}x")
     RESULTS.mkdir(exist_ok=True)
     payload = dict(device=str(jax.devices()[0]), quick=args.quick, results=results,
                    note="2 CPU cores shared with other jobs while measured: timings are noisy and pessimistic")
-    (RESULTS / "bench_finite.json").write_text(json.dumps(payload, indent=1))
-    plot(results, RESULTS / "bench_finite.png")
+    saved.write_text(json.dumps(payload, indent=1))
+    if "clamped" in results and "curve" in results:
+        plot(results, RESULTS / "bench_finite.png")
     print(f"saved {RESULTS / 'bench_finite.json'} and .png")
 
 

@@ -153,15 +153,25 @@ def rows_fit_problems(r):
                  f"{peer_name} (compiled JAX model, jacfwd)", None, peer["median_s"], note=note)]
 
 
+# scipy tolerances of the finite-rod rows (the JSON and bench_finite.py's output have them all).
+FINITE_TABLE_TOLS = (1e-4, 1e-6)
+
+
 def rows_finite(r):
     res = r.get("results", {})
     cases = {"clamped": ("clamped-clamped spring, 3 turns, 41 points", "solve_boundary_value"),
              "curve": ("50-point force-extension curve", "force_extension (warm starts)")}
+    # Rows before the split into the default and the solve alone have no "library".
+    variants = {"helixrod": "with its stability test (16 pieces)", "helixrod-solve": "the solve alone (stability_pieces=0)"}
     out = []
     for key, (case, method) in cases.items():
         part = res.get(key)
         for h in (part or {}).get("headline", []):
-            out.append(_row("finite", case, f"{method}, tol {h['helixrod_tol']:.0e}", h["helixrod_error"], h["helixrod_s"],
+            if h["scipy_tol"] not in FINITE_TABLE_TOLS:
+                continue
+            library = h.get("library", "helixrod")
+            what = f"{method}, tol {h['helixrod_tol']:.0e}" + (f", {variants[library]}" if "library" in h else "")
+            out.append(_row("finite", case, what, h["helixrod_error"], h["helixrod_s"],
                             part.get("compile_s"), f"scipy solve_bvp, tol {h['scipy_tol']:.0e}", h["scipy_error"],
                             h["scipy_s"], note="equal accuracy: the cheapest helixrod run with error <= scipy's"))
     fit = res.get("fit")

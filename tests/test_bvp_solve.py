@@ -21,6 +21,7 @@ from scipy.integrate import solve_bvp
 
 import helixrod as hr
 from helixrod._bvp import stack_ends
+from helixrod._bvp._options import with_settings
 
 
 @pytest.mark.heavy
@@ -201,6 +202,21 @@ def test_options_reject_bad_values():
         hr.solve_boundary_value(SPRING, 10.0, end=end, atol=-1.0)
     with pytest.raises(ValueError, match="options must be a BoundaryValueOptions"):
         hr.solve_boundary_value(SPRING, 10.0, end=end, options={"segments": 2})
+
+
+def test_option_tolerances_are_host_scalars_or_traced_arrays():
+    """Concrete tolerances are kept as NumPy float64 scalars (building options dispatches
+    nothing to the device), JAX arrays -- traced ones included -- as they are; the default
+    options are one shared instance."""
+    options = hr.BoundaryValueOptions(atol=1e-8, ode_rtol=np.float32(1e-6))
+    assert isinstance(options.atol, np.ndarray) and options.atol.dtype == np.float64 and float(options.atol) == 1e-8
+    assert options.ode_rtol.dtype == np.float64 and float(options.ode_rtol) == pytest.approx(1e-6)
+    given = jnp.asarray(1e-9)
+    assert hr.BoundaryValueOptions(atol=given).atol is given
+    traced = jax.jit(lambda t: jnp.asarray(hr.BoundaryValueOptions(ode_atol=t).ode_atol * 2))(3e-7)
+    assert float(traced) == pytest.approx(6e-7)
+    assert with_settings(None) is with_settings(None, segments=None)
+    assert with_settings(None, atol=1e-7).atol == 1e-7 and with_settings(None) == hr.BoundaryValueOptions()
 
 
 @pytest.mark.heavy

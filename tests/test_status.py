@@ -7,11 +7,12 @@ import re
 import diffrax
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 import pytest
 
 import helixrod as hr
-from helixrod._status import raise_if_failed
+from helixrod._status import ok_of, raise_if_failed, succeeded
 
 
 def codes(mask, if_true, if_false):
@@ -63,6 +64,15 @@ def test_raise_if_failed_eager():
                                                     hr.RESULTS.successful)
     with pytest.raises(hr.SolverError, match=re.escape("1 of 4 points failed (first at index (1, 1): The cost")):
         raise_if_failed(tree, grid, "my solve")
+
+
+def test_succeeded_reads_concrete_codes_on_the_host():
+    """`succeeded` agrees with the device comparison `ok_of` for every code, one or a batch."""
+    every = [getattr(hr.RESULTS, name) for name in ("successful", "max_steps_reached", "invalid_input", "residual_above_tolerance")]
+    for code in every:
+        assert isinstance(succeeded(code), np.ndarray) and bool(succeeded(code)) == bool(ok_of(code))
+    batch = codes(jnp.array([True, False, True]), hr.RESULTS.successful, hr.RESULTS.nonlinear_divergence)
+    assert succeeded(batch).tolist() == ok_of(batch).tolist() == [True, False, True]
 
 
 def test_raise_if_failed_traced_raises_when_the_program_runs():

@@ -70,16 +70,26 @@ def result_from_name(name: str) -> RESULTS:
         raise ValueError(f"unknown result code {name!r}; known: {', '.join(RESULTS._name_to_item)}") from None
 
 
+def _code(result) -> np.ndarray:
+    (value,) = jax.tree.leaves(result)
+    return np.asarray(value)
+
+
+def succeeded(result) -> np.ndarray:
+    """`ok_of` for concrete codes, compared on the host: no device dispatch (~35 us each,
+    which added up in the status checks of an eager call)."""
+    return np.asarray(_code(result) == _code(RESULTS.successful))
+
+
 def raise_if_failed(tree, result, what: str, hint: str = ""):
     """The `throw=True` behaviour: `tree` unchanged if every code in `result` is successful.
 
     Concrete codes (an eager call): `SolverError` naming `what`, the message and, for a
     batch, the failed points.  Traced codes: `tree` threaded through `eqx.error_if`, so the
     program raises when it runs (the message of the first failed code)."""
-    failed = result != RESULTS.successful
-    if not is_concrete(failed):
-        return result.error_if(tree, failed)
-    failed = np.asarray(failed)
+    if not is_concrete(result):
+        return result.error_if(tree, result != RESULTS.successful)
+    failed = ~succeeded(result)
     if not failed.any():
         return tree
     if failed.ndim == 0:

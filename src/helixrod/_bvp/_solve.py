@@ -37,7 +37,7 @@ from .._geometry import unloaded_state
 from .._kirchhoff import wrench_growth_rate
 from .._misc import finite_scalar, float_dtype, increasing_within, is_concrete, no_gradient
 from .._rod import check_one_rod
-from .._status import RESULTS, promote, raise_if_failed
+from .._status import RESULTS, promote, raise_if_failed, succeeded
 from ._bulk import length_scale, stiffness_scale
 from ._ends import CLAMPED, LOADED, AbstractEnd, Clamped, EndCondition, end_condition
 from ._options import BoundaryValueOptions, with_settings
@@ -400,7 +400,7 @@ def solve_boundary_value(
     sol = solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind)
     if is_concrete(sol) and jnp.ndim(sol.residual) == 0:
         sol = _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind)
-    if throw and is_concrete(sol) and jnp.ndim(sol.residual) == 0 and not bool(sol.ok):
+    if throw and is_concrete(sol) and jnp.ndim(sol.residual) == 0 and not succeeded(sol.result):
         raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _hint(sol, rod, length, start, end, guess, guess_kind))
     return raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _HINT) if throw else sol
 
@@ -505,11 +505,11 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
     intrinsically straight rod between clamps brought closer than its length, the first
     buckled mode (`buckled_guess`), then homotopy continuation from the unloaded rod
     (`FALLBACK_CONTINUATION`)."""
-    moment_loaded = bool(end.kind == LOADED) and bool(jnp.any(end.moment != 0))
+    moment_loaded = int(end.kind) == LOADED and bool(np.any(np.asarray(end.moment) != 0))
 
     def resolved(sol, options):
         pieces = options.stability_pieces
-        while bool(sol.ok) and int(sol.instability_index) < 0 and not moment_loaded and 0 < pieces < MAX_STABILITY_PIECES:
+        while succeeded(sol.result) and int(sol.instability_index) < 0 and not moment_loaded and 0 < pieces < MAX_STABILITY_PIECES:
             pieces = min(max(2 * pieces, _solution_pieces(rod, length, sol)), MAX_STABILITY_PIECES)
             options = dataclasses.replace(options, stability_pieces=pieces)
             sol = restability(rod, length, end, sol, options)
@@ -519,7 +519,7 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
         return resolved(solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind), options)
 
     sol = resolved(sol, options)
-    acceptable = lambda s: bool(s.ok) and int(s.instability_index) <= 0  # noqa: E731
+    acceptable = lambda s: bool(succeeded(s.result)) and int(s.instability_index) <= 0  # noqa: E731
 
     def settled(trial):
         """`trial`, or where it converged to an unstable state, a solve pushed from it to
@@ -527,7 +527,7 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
         acceptable."""
         if acceptable(trial):
             return trial
-        if not bool(trial.ok):
+        if not succeeded(trial.result):
             return None
         for sign in (1.0, -1.0, 4.0, -4.0):
             N = trial.force + sign * trial.unstable_direction[:3]
@@ -552,7 +552,7 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
     for steps in FALLBACK_CONTINUATION:
         homotopy = dataclasses.replace(options, continuation=steps)
         trial = solved(None, homotopy)
-        if acceptable(trial) or (bool(trial.ok) and not bool(sol.ok)):
+        if acceptable(trial) or (succeeded(trial.result) and not succeeded(sol.result)):
             sol = trial
         if acceptable(sol):
             break

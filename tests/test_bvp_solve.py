@@ -193,6 +193,8 @@ def test_options_reject_bad_values():
         ({"atol": 0.0}, "atol must be finite and > 0"),
         ({"ode_rtol": np.nan}, "ode_rtol must be finite and > 0"),
         ({"ode_atol": jnp.ones(2)}, "ode_atol must be a scalar"),
+        ({"ode_rtol": np.ones(3)}, "ode_rtol must be a scalar"),
+        ({"atol": "tight"}, "atol must be a number, got 'tight'"),
     ]:
         with pytest.raises(ValueError, match="BoundaryValueOptions: " + match):
             hr.BoundaryValueOptions(**kwargs)

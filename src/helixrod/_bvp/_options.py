@@ -22,12 +22,21 @@ TOLERANCE_EPSILONS = 100
 METHODS = ("levenberg-marquardt", "newton")
 
 
-def _tolerance(value) -> Array | np.ndarray:
-    """A tolerance field: a JAX array (traced or not) as it is, anything else as a NumPy
-    float64 scalar, which costs no device dispatch (building the options of an eager call
-    took ~0.3 ms with `jnp.asarray`); the solve converts it to its own dtype
-    (`BoundaryValueOptions.for_dtype`)."""
-    return value if isinstance(value, jax.Array) else np.asarray(value, dtype=float)
+def _tolerance(name: str):
+    """The converter of a tolerance field: a JAX array (traced or not) as it is, anything
+    else as a NumPy float64 array, which costs no device dispatch (building the options of
+    an eager call took ~0.3 ms with `jnp.asarray`); the solve converts it to its own dtype
+    (`BoundaryValueOptions.for_dtype`) and `__check_init__` checks its shape and value."""
+
+    def convert(value) -> Array | np.ndarray:
+        if isinstance(value, jax.Array):
+            return value
+        try:
+            return np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(f"BoundaryValueOptions: {name} must be a number, got {value!r}") from None
+
+    return convert
 
 
 class BoundaryValueOptions(eqx.Module):
@@ -62,9 +71,9 @@ class BoundaryValueOptions(eqx.Module):
     continuation: int = eqx.field(static=True, default=0)
     method: str = eqx.field(static=True, default="levenberg-marquardt")
     max_steps: int = eqx.field(static=True, default=64)
-    atol: Array = eqx.field(converter=_tolerance, default=1e-10)
-    ode_rtol: Array = eqx.field(converter=_tolerance, default=1e-10)
-    ode_atol: Array = eqx.field(converter=_tolerance, default=1e-10)
+    atol: Array = eqx.field(converter=_tolerance("atol"), default=1e-10)
+    ode_rtol: Array = eqx.field(converter=_tolerance("ode_rtol"), default=1e-10)
+    ode_atol: Array = eqx.field(converter=_tolerance("ode_atol"), default=1e-10)
     solver: diffrax.AbstractSolver = CommutatorFreeRK4()
     max_ode_steps: int = eqx.field(static=True, default=16_384)
     adjoint: diffrax.AbstractAdjoint = diffrax.ForwardMode()

@@ -138,6 +138,45 @@ def test_small_inverse_determinant_and_matrix_right_hand_sides_match_lapack(rng)
     assert float(determinant_small(np.diag([2.0, -3.0, 0.5]))) == pytest.approx(-3.0, rel=1e-15)
 
 
+def test_lowest_eigenpair_matches_eigh(rng):
+    """Count below a shift, lowest eigenvalue and its vector against `numpy.linalg.eigh`, on
+    random symmetric matrices, ones with a double lowest eigenvalue, ones with a huge
+    decoupled diagonal entry in the last row (the stability Hessian's fixed slots: the
+    eigenpair must stay accurate relative to the rest, not to that entry) and graded ones;
+    and under `vmap`."""
+    lowest_eigenpair = jax.jit(_misc.lowest_eigenpair)
+    for trial in range(40):
+        n = int(rng.integers(2, 60))
+        A = rng.normal(size=(n, n))
+        A = A + A.T
+        if trial % 4 == 1:  # last, as in the Hessian: the reduction then leaves it decoupled
+            k = n - 1
+            A[k, :] = A[:, k] = 0.0
+            A[k, k] = 1e12 * np.abs(A).max()
+        elif trial % 4 == 2:
+            Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+            w = np.sort(rng.normal(size=n))
+            w[1] = w[0]
+            A = Q @ np.diag(w) @ Q.T
+            A = 0.5 * (A + A.T)
+        elif trial % 4 == 3:
+            A = 1e-8 * A + np.diag(np.linspace(0.0, 10.0, n))
+        w = np.linalg.eigvalsh(A)
+        if trial % 4 == 1:  # decoupled: the spectrum of the rest, and the huge entry
+            w = np.sort(np.append(np.linalg.eigvalsh(np.delete(np.delete(A, k, 0), k, 1)), A[k, k]))
+        soft = np.abs(w[w < 1e9]).max()  # the scale of the spectrum without a huge entry
+        shift = float(rng.normal())
+        count, lowest, vector = lowest_eigenpair(A, shift)
+        assert int(count) == int(np.sum(w < shift)), trial
+        assert float(lowest) == pytest.approx(w[0], abs=1e-13 * soft), trial
+        v = np.asarray(vector)
+        assert np.linalg.norm(v) == pytest.approx(1.0, abs=1e-12)
+        assert np.linalg.norm(A @ v - w[0] * v) <= 1e-12 * soft, trial
+    batch = np.stack([np.diag([3.0, 1.0, 2.0]), np.diag([-1.0, 5.0, 4.0])])
+    counts, lows, _ = jax.vmap(_misc.lowest_eigenpair, in_axes=(0, None))(batch, 0.0)
+    assert counts.tolist() == [0, 1] and np.allclose(lows, [1.0, -1.0], rtol=1e-15, atol=0)
+
+
 def test_symmetric_eigenvalue_min_matches_eigvalsh(rng):
     for _ in range(20):
         S = rng.normal(size=(3, 3))

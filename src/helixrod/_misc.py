@@ -187,6 +187,86 @@ def symmetric_eigenvalue_min(A: ArrayLike) -> Array:
     return jnp.where(p > 0, q + 2.0 * p * jnp.cos(phi + 2.0 * jnp.pi / 3.0), q)
 
 
+def _sturm_count(d: Array, e2: Array, shift: Array, pivmin: Array) -> Array:
+    """Eigenvalues below `shift` of the symmetric tridiagonal matrix of diagonal `d` and
+    squared subdiagonal `e2` (`e2[0]` = 0): the negative pivots of its $LDL^T$ factorisation
+    at `shift` (Sturm's count, monotone in `shift`; a pivot within `pivmin` of zero counts as
+    negative, as in LAPACK's `dstebz`)."""
+
+    def pivot(q, entries):
+        di, e2i = entries
+        q = di - shift - e2i / q
+        q = jnp.where(jnp.abs(q) < pivmin, -pivmin, q)
+        return q, q < 0
+
+    _, negative = jax.lax.scan(pivot, jnp.ones((), d.dtype), (d, e2))
+    return jnp.sum(negative).astype(jnp.int32)
+
+
+#: At most this many bisection steps for the lowest eigenvalue (each halves the interval;
+#: they stop once it is within a few eps of the eigenvalue).
+_MAX_BISECTIONS = 256
+
+
+def lowest_eigenpair(A: ArrayLike, shift: ArrayLike) -> tuple[Array, Array, Array]:
+    """(number of eigenvalues below `shift`, the lowest eigenvalue, a unit eigenvector of it)
+    of one symmetric matrix `A` `(n, n)`, without its full eigendecomposition.
+
+    `A` is reduced to tridiagonal form $A = QTQ^T$ (LAPACK `sytrd`, $\\tfrac43 n^3$ flops);
+    the count and the eigenvalue come from Sturm counts on $T$ (`_sturm_count`; bisection
+    to a few eps of the eigenvalue), the eigenvector from two steps of inverse iteration on $T$
+    mapped back by $Q$'s Householder reflectors.  Both are backward stable: errors of order
+    eps $\\|A\\|$, as `jnp.linalg.eigh`'s, which computes every eigenpair and took 4x as long
+    for $n = 96$.  Rows that are decoupled from the others and come last (the stability
+    Hessian's fixed slots, with a huge diagonal) stay decoupled through the reduction, so a
+    huge entry there does not spoil the rest.  For a multiple lowest eigenvalue the vector is
+    one of its eigenspace."""
+    A = jnp.asarray(A)
+    n = A.shape[-1]
+    reflectors, d, e, taus = jax.lax.linalg.tridiagonal(A, lower=True)
+    zero = jnp.zeros(1, d.dtype)
+    e2 = jnp.concatenate([zero, e * e])
+    pivmin = jnp.finfo(d.dtype).tiny * jnp.maximum(1.0, jnp.max(e2))
+    count = _sturm_count(d, e2, jnp.asarray(shift, d.dtype), pivmin)
+    # The lowest eigenvalue lies above Gershgorin's bound and below the smallest diagonal
+    # entry (a Rayleigh quotient): a far tighter interval than Gershgorin's where a few
+    # entries are huge (the stability Hessian's fixed slots).
+    eps = jnp.finfo(d.dtype).eps
+    radius = jnp.abs(jnp.concatenate([e, zero])) + jnp.abs(jnp.concatenate([zero, e]))
+    lo, hi = jnp.min(d - radius), jnp.min(d)
+    slack = 2.0 * eps * jnp.maximum(jnp.abs(lo), jnp.abs(hi)) + pivmin
+    lo, hi = lo - slack, hi + slack
+
+    def wide(state):
+        lo, hi, steps = state
+        return (hi - lo > 2.0 * eps * jnp.maximum(jnp.abs(lo), jnp.abs(hi)) + pivmin) & (steps < _MAX_BISECTIONS)
+
+    def bisect(state):
+        lo, hi, steps = state
+        mid = 0.5 * (lo + hi)
+        found = _sturm_count(d, e2, mid, pivmin) >= 1
+        return jnp.where(found, lo, mid), jnp.where(found, mid, hi), steps + 1
+
+    lo, hi, _ = jax.lax.while_loop(wide, bisect, (lo, hi, jnp.zeros((), jnp.int32)))
+    lowest = 0.5 * (lo + hi)
+    # Inverse iteration from a start with no special symmetry; perturb_singular keeps the
+    # nearly singular solves finite.
+    x = 1.0 + 0.1 * jnp.sin(jnp.arange(n, dtype=d.dtype))
+    lower, upper = jnp.concatenate([zero, e]), jnp.concatenate([e, zero])
+    for _ in range(2):
+        x = jax.lax.linalg.tridiagonal_solve(lower, d - lowest, upper, x[:, None], perturb_singular=True)[:, 0]
+        x = x / jnp.linalg.norm(x)
+    index = jnp.arange(n)
+
+    def reflect(k, x):
+        # Q = H_0 H_1 ... H_{n-2}, H_i = I - tau_i v_i v_i^T, v_i = (0.., 1 at i+1, reflectors[i+2:, i]).
+        i = n - 2 - k
+        v = jnp.where(index > i + 1, reflectors[:, i], 0.0) + (index == i + 1)
+        return x - taus[i] * v * (v @ x)
+
+    return count, lowest, jax.lax.fori_loop(0, n - 1, reflect, x)
+
+
 def write_atomically(path, write, *, binary: bool = True) -> None:
     """Write a file through `write(file)` into a temporary file beside `path`, then rename
     it over `path`: an interrupted or failed write leaves an existing file whole.  The

@@ -57,7 +57,7 @@ from jaxtyping import Array, Float
 
 from .._kirchhoff import fixed_step_flow, linearised_rate
 from .._lie import hat, vee
-from .._misc import inverse_small, no_gradient, solve_small, symmetric_eigenvalue_min
+from .._misc import inverse_small, lowest_eigenpair, no_gradient, solve_small, symmetric_eigenvalue_min
 from ._ends import LOADED, TWEEZER, EndCondition
 from ._options import BoundaryValueOptions
 from ._shooting import per_piece
@@ -221,19 +221,20 @@ def assess(rod, length, end: EndCondition, N, transfers, end_position, largest_m
     p = transfers.shape[0]
     h = length / p
     H, free = second_variation(rod, length, end, N, end_position, transfers)
-    eigenvalues, vectors = jnp.linalg.eigh(H)
-    margin = eigenvalues[0]
+    defined_H = jnp.all(jnp.isfinite(H))
+    # Only the bottom of the spectrum is needed: the count below the neutral band, the
+    # lowest eigenvalue and its vector (NaN-free input: a failed integration is masked below).
+    index, margin, vector = lowest_eigenpair(jnp.where(defined_H, H, jnp.eye(H.shape[0], dtype=H.dtype)), -NEUTRAL * (p / 16) ** 2)
     # The most unstable direction as the start-wrench change that produces it to first
     # order (the first free node's variation through the first piece's B^{-1}), scaled to a
     # largest node rotation (or displacement / L) of `UNSTABLE_STEP`.
-    mode = jnp.where(free, vectors[:, 0], 0.0).reshape(p, 6) * jnp.concatenate([jnp.full(3, length), jnp.ones(3)])[None, :]
+    mode = jnp.where(free, vector, 0.0).reshape(p, 6) * jnp.concatenate([jnp.full(3, length), jnp.ones(3)])[None, :]
     size = jnp.maximum(jnp.max(jnp.abs(mode[:, 3:])), jnp.max(jnp.abs(mode[:, :3])) / length)
     mode = UNSTABLE_STEP * mode / jnp.where(size > 0, size, 1.0)
     push = solve_small(transfers[0, :6, 6:], mode[0])
-    index = jnp.sum(eigenvalues < -NEUTRAL * (p / 16) ** 2).astype(jnp.int32)
     k_min = stiffness_range(rod)[0]
     resolved = h * (jnp.sqrt(jnp.linalg.norm(N) / k_min) + largest_moment / k_min) <= PIECE_RESOLUTION
     moment_free = ~((end.kind == LOADED) & (jnp.linalg.norm(end.moment) > 0))
-    defined = moment_free & resolved & jnp.all(jnp.isfinite(H))
+    defined = moment_free & resolved & defined_H
     push = jnp.where(defined & (index > 0) & jnp.all(jnp.isfinite(push)), push, 0.0)
     return jnp.where(defined, index, -1), jnp.where(defined, margin, jnp.nan), push

@@ -216,7 +216,7 @@ def lowest_eigenpair(A: ArrayLike, shift: ArrayLike) -> tuple[Array, Array, Arra
     the count and the eigenvalue come from Sturm counts on $T$ (`_sturm_count`; bisection
     to a few eps of the eigenvalue), the eigenvector from two steps of inverse iteration on $T$
     mapped back by $Q$'s Householder reflectors.  Both are backward stable: errors of order
-    eps $\\|A\\|$, as `jnp.linalg.eigh`'s, which computes every eigenpair and took 4x as long
+    eps $\\|A\\|$, as `jnp.linalg.eigh`'s, which computes every eigenpair and took 3x as long
     for $n = 96$.  Rows that are decoupled from the others and come last (the stability
     Hessian's fixed slots, with a huge diagonal) stay decoupled through the reduction, so a
     huge entry there does not spoil the rest.  For a multiple lowest eigenvalue the vector is

@@ -225,14 +225,15 @@ def lowest_eigenpair(A: ArrayLike, shift: ArrayLike) -> tuple[Array, Array, Arra
     n = A.shape[-1]
     reflectors, d, e, taus = jax.lax.linalg.tridiagonal(A, lower=True)
     zero = jnp.zeros(1, d.dtype)
-    e2 = jnp.concatenate([zero, e * e])
+    lower, upper = jnp.concatenate([zero, e]), jnp.concatenate([e, zero])  # T's off-diagonals, padded
+    e2 = lower * lower
     pivmin = jnp.finfo(d.dtype).tiny * jnp.maximum(1.0, jnp.max(e2))
     count = _sturm_count(d, e2, jnp.asarray(shift, d.dtype), pivmin)
     # The lowest eigenvalue lies above Gershgorin's bound and below the smallest diagonal
     # entry (a Rayleigh quotient): a far tighter interval than Gershgorin's where a few
     # entries are huge (the stability Hessian's fixed slots).
     eps = jnp.finfo(d.dtype).eps
-    radius = jnp.abs(jnp.concatenate([e, zero])) + jnp.abs(jnp.concatenate([zero, e]))
+    radius = jnp.abs(lower) + jnp.abs(upper)
     lo, hi = jnp.min(d - radius), jnp.min(d)
     slack = 2.0 * eps * jnp.maximum(jnp.abs(lo), jnp.abs(hi)) + pivmin
     lo, hi = lo - slack, hi + slack
@@ -252,7 +253,6 @@ def lowest_eigenpair(A: ArrayLike, shift: ArrayLike) -> tuple[Array, Array, Arra
     # Inverse iteration from a start with no special symmetry; perturb_singular keeps the
     # nearly singular solves finite.
     x = 1.0 + 0.1 * jnp.sin(jnp.arange(n, dtype=d.dtype))
-    lower, upper = jnp.concatenate([zero, e]), jnp.concatenate([e, zero])
     for _ in range(2):
         x = jax.lax.linalg.tridiagonal_solve(lower, d - lowest, upper, x[:, None], perturb_singular=True)[:, 0]
         x = x / jnp.linalg.norm(x)

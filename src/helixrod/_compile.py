@@ -129,3 +129,32 @@ def filter_jit(fun=None, /, **kwargs):
     if fun is None:
         return functools.partial(filter_jit, **kwargs)
     return _with_options(eqx.filter_jit(fun, **kwargs), eqx.filter_jit(fun, compiler_options=COMPILER_OPTIONS, **kwargs))
+
+
+class StaticHalf:
+    """The non-array half of a pytree (`split_arrays`) as a `jax.jit` static argument,
+    hashed and compared by its structure and leaves: equal halves find the same compiled
+    program, as `equinox.filter_jit` arranges by splitting its arguments at every call."""
+
+    def __init__(self, tree):
+        self.leaves, self.treedef = jax.tree.flatten(tree)
+        self._hash = hash((self.treedef, tuple(self.leaves)))
+
+    def __hash__(self):
+        return self._hash
+
+    def __eq__(self, other):
+        return isinstance(other, StaticHalf) and self.treedef == other.treedef and self.leaves == other.leaves
+
+    def combine(self, arrays):
+        """The whole pytree again, from its array half."""
+        return eqx.combine(arrays, jax.tree.unflatten(self.treedef, self.leaves))
+
+
+def split_arrays(tree):
+    """`tree` as its array half and its `StaticHalf`: split once, for a program called many
+    times with the same non-array half (a solver's steps), which then runs as a plain
+    `jax.jit` (``static_argnums`` the `StaticHalf`).  `equinox.filter_jit` splits at every
+    call instead; measured on a tweezer fit's model and on its solver step, ~0.2 ms a call."""
+    arrays, static = eqx.partition(tree, eqx.is_array)
+    return arrays, StaticHalf(static)

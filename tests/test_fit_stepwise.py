@@ -1,0 +1,131 @@
+"""The host-driven Gauss--Newton loop (`stepwise_least_squares`) against the loop it copies,
+`optimistix.least_squares` on the composed residuals: the same iterates, steps and result
+codes, the model evaluated only through the caller's residuals-and-Jacobian function."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+
+from helixrod._fit._solvers import make_solver, with_materialised_jacobian
+from helixrod._fit._stepwise import steppable, stepwise_least_squares
+from helixrod._status import promote, result_name
+
+T = np.linspace(0.0, 1.0, 40)
+DATA = 3.0 * (1 + 0.4 * T) * np.exp(-1.3 * T) + 1e-3 * np.random.default_rng(1).normal(size=T.size)
+
+
+def residuals(q):
+    return 3.0 * (1 + q[0] * T) * jnp.exp(q[1] * T) - DATA
+
+
+def physical(z):
+    """Internal coordinates to the model's values: a nonlinear map, as a fit's bounds give."""
+    return jnp.stack([z[0], -jnp.exp(z[1])])
+
+
+def jacobian_at(q, calls=None):
+    if calls is not None:
+        calls.append(np.asarray(q))
+    return residuals(q), jax.jacfwd(residuals)(q)
+
+
+def reference(solver, z0, max_steps):
+    """optimistix's own loop, on the residuals with their Jacobian materialised (the
+    pipeline's optimistix path): the same linear algebra as the stepwise loop."""
+    composed = with_materialised_jacobian(lambda z, _: residuals(physical(z)))
+    sol = optx.least_squares(composed, solver, jnp.asarray(z0), max_steps=max_steps, throw=False)
+    return sol.value, promote(sol.result), int(sol.stats["num_steps"])
+
+
+# optimistix's own solvers with tolerances above round-off: at round-off their stopping is
+# decided by rounding (see test_fit_solvers), and two exact loops part there.
+SOLVERS = {
+    "helixrod LM": make_solver("levenberg-marquardt", 1e-10, 1e-12, 1e-2),
+    "optimistix LM": optx.LevenbergMarquardt(rtol=1e-7, atol=1e-9),
+    "Gauss-Newton": optx.GaussNewton(rtol=1e-7, atol=1e-9),
+    "dogleg": optx.Dogleg(rtol=1e-7, atol=1e-9),
+}
+
+
+@pytest.mark.parametrize(("name", "z0"), [(name, (1.0, 0.5)) for name in SOLVERS] + [("helixrod LM", (0.5, -0.5))])
+def test_same_iterates_and_minimum_as_optimistix(name, z0):
+    """The first steps (each loop cut off after k steps) agree to round-off; once the loss
+    changes at round-off only, accepting or rejecting a step is decided by rounding, which
+    differs between the two programs: there the loops may stop some steps apart, at the
+    same minimum."""
+    solver = SOLVERS[name]
+    assert steppable(solver)
+    for k in (2, 4):
+        z, _, _, steps = stepwise_least_squares(jacobian_at, physical, jnp.asarray(z0), solver, k)
+        z_ref, _, steps_ref = reference(solver, z0, k)
+        assert int(steps) == steps_ref
+        np.testing.assert_allclose(np.asarray(z), np.asarray(z_ref), rtol=1e-10, atol=1e-12)
+    calls = []
+    z, cost, result, steps = stepwise_least_squares(lambda q: jacobian_at(q, calls), physical, jnp.asarray(z0), solver, 100)
+    z_ref, result_ref, steps_ref = reference(solver, z0, 100)
+    assert result_name(result) == result_name(result_ref) == "successful"
+    np.testing.assert_allclose(np.asarray(z), np.asarray(z_ref), rtol=1e-6)
+    r = np.asarray(residuals(physical(z)))
+    assert float(cost) == pytest.approx(0.5 * r @ r, rel=1e-10)
+    assert len(calls) == int(steps)  # one model evaluation per step, none besides
+
+
+def test_max_steps_reached_is_reported_as_optimistix_does():
+    solver = SOLVERS["helixrod LM"]
+    z, cost, result, steps = stepwise_least_squares(jacobian_at, physical, jnp.asarray([2.0, 1.5]), solver, 2)
+    z_ref, result_ref, steps_ref = reference(solver, (2.0, 1.5), 2)
+    assert result_name(result) == result_name(result_ref) == "nonlinear_max_steps_reached"
+    assert int(steps) == steps_ref == 2
+    np.testing.assert_allclose(np.asarray(z), np.asarray(z_ref), rtol=1e-12)
+    assert np.isfinite(float(cost))
+
+
+def test_a_nonfinite_start_is_flagged_without_evaluating_the_model():
+    calls = []
+    z, cost, result, steps = stepwise_least_squares(
+        lambda q: jacobian_at(q, calls), physical, jnp.asarray([np.nan, 0.0]), SOLVERS["helixrod LM"], 10
+    )
+    assert result_name(result) == "nonfinite" and float(cost) == np.inf and int(steps) == 0 and not calls
+
+
+def test_a_model_that_fails_at_the_start_ends_not_successful():
+    nan_jacobian = lambda q: (jnp.full(T.size, jnp.nan), jnp.full((T.size, 2), jnp.nan))
+    z, cost, result, steps = stepwise_least_squares(nan_jacobian, physical, jnp.asarray([0.0, 0.0]), SOLVERS["helixrod LM"], 10)
+    sol = optx.least_squares(lambda z, _: jnp.full(T.size, jnp.nan) * z[0], SOLVERS["helixrod LM"], jnp.zeros(2), max_steps=10, throw=False)
+    assert result_name(result) == result_name(promote(sol.result)) != "successful"
+    assert float(cost) == np.inf
+
+
+def test_only_gauss_newton_type_solvers_are_steppable():
+    assert not steppable(optx.BFGS(rtol=1e-8, atol=1e-8))
+    assert not steppable(make_solver("lbfgs", 1e-8, 1e-8, 1e-2))
+    assert steppable(make_solver("gauss-newton", 1e-8, 1e-8, 1e-2))
+
+
+@pytest.mark.heavy
+def test_a_tweezer_fit_takes_the_same_steps_as_the_optimistix_loop(monkeypatch):
+    """`fit_stiffness` of a forward model that is a solve of its own (a tweezer response)
+    drives the solver stepwise; with the stepwise path turned off the pipeline runs
+    optimistix's loop in one compiled program: the same fit, start by start."""
+    import helixrod as hr
+    from helixrod import dna
+    from helixrod._fit import _pipeline
+
+    rod = dna.load_tweezer_example().rod
+    forces = np.geomspace(0.1, 30.0, 24)
+    clean = dna.tweezer_response(rod, 8000, forces, torque=0.0, persistence_length=48.0).extension
+    extension = np.asarray(clean) + 3.0 * np.random.default_rng(2).normal(size=forces.size)
+    data = dna.TweezerData.from_arrays(forces, extension, extension_sigma=3.0, torque=np.zeros(forces.size), n_bp=8000)
+    fix = {"K1": float(rod.K1), "K13": 0.0, "K3": float(rod.K3), "K23": float(rod.K23), "plectoneme_twist_persistence": 24.0}
+    fit = lambda: hr.fit_stiffness(data, uhat=rod.uhat, init=rod, fix=fix, n_starts=2)
+    stepwise = fit()
+    monkeypatch.setattr(_pipeline, "steppable", lambda solver: False)
+    looped = fit()
+    assert stepwise.ok and looped.ok
+    np.testing.assert_array_equal(np.asarray(stepwise.start_costs) > 0, True)
+    np.testing.assert_allclose(np.asarray(stepwise.start_costs), np.asarray(looped.start_costs), rtol=1e-9)
+    assert int(stepwise.n_steps) == int(looped.n_steps)
+    for name in stepwise.params:
+        assert float(stepwise.params[name]) == pytest.approx(float(looped.params[name]), rel=1e-8), name

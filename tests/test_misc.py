@@ -186,3 +186,26 @@ def test_symmetric_eigenvalue_min_matches_eigvalsh(rng):
     assert float(_misc.symmetric_eigenvalue_min(np.diag([1.0, 2.0, 2.0]))) == pytest.approx(1.0, rel=1e-14)
     # A double smallest eigenvalue: the documented ~1e-8 of the arccos near its end.
     assert float(_misc.symmetric_eigenvalue_min(np.diag([1.0, 1.0, 2.0]))) == pytest.approx(1.0, rel=1e-7)
+
+
+@pytest.mark.parametrize("through_loops", [False, True])
+def test_jacobian_forward_of_a_loop_against_the_closed_form(through_loops):
+    """f(x) = (x0^(1/3) by Newton in a `while` loop, x0 x1^2): both ways of forming the
+    Jacobian (linearised, or `jacfwd` for derivatives through loops) give the closed form,
+    with the auxiliary output passed through."""
+
+    def cube_root(a):
+        step = lambda y: y - (y**3 - a) / (3 * y**2)  # noqa: E731
+        return jax.lax.while_loop(lambda y: jnp.abs(y**3 - a) > 1e-14 * a, step, jnp.ones_like(a) + a / 3)
+
+    def fn(x):
+        value = jnp.stack([cube_root(x[0]), x[0] * x[1] ** 2])
+        return value, 2 * value
+
+    x = jnp.array([5.0, 1.5])
+    jacobian, aux = _misc.jacobian_forward(fn, x, has_aux=True, through_loops=through_loops)
+    expected = np.array([[5.0 ** (-2 / 3) / 3, 0.0], [1.5**2, 2 * 5.0 * 1.5]])
+    np.testing.assert_allclose(jacobian, expected, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(aux, 2 * np.array([5.0 ** (1 / 3), 5.0 * 1.5**2]), rtol=1e-14)
+    plain = _misc.jacobian_forward(lambda x: fn(x)[0], x, through_loops=through_loops)
+    np.testing.assert_array_equal(plain, jacobian)

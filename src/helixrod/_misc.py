@@ -102,14 +102,26 @@ def increasing_within(s: ArrayLike, length: ArrayLike, name: str, owner: str, sl
     return s
 
 
-def jacobian_forward(fn, x: Array, *, has_aux: bool = False):
+def jacobian_forward(fn, x: Array, *, has_aux: bool = False, through_loops: bool = False):
     """`jax.jacfwd(fn, has_aux=has_aux)(x)` for a flat `x` (the Jacobian's last axis is
-    x's), by one `jax.linearize` and the linear map applied to the unit vectors.  The same
-    values; but `jacfwd` traces `fn`'s whole forward-mode program under `vmap`, and this
-    traces `fn` once and batches only its linear part, which for helixrod's models (a
-    register solve with loops whose derivative is one implicit-function formula) is a
-    fraction of it: the fit's Jacobian program (60 helices) traced in 1.3-1.6 s instead of
-    2.9-3.8 s (measured on a loaded 2-core machine)."""
+    x's).  By default by one `jax.linearize` and the linear map applied to the unit vectors:
+    the same values, but `jacfwd` traces `fn`'s whole forward-mode program under `vmap`, and
+    this traces `fn` once and batches only its linear part, which for helixrod's helix
+    models (a register solve with loops whose derivative is one implicit-function formula)
+    is a fraction of it: the fit's Jacobian program (60 helices) traced in 1.3-1.6 s instead
+    of 2.9-3.8 s (measured on a loaded 2-core machine).
+
+    `through_loops=True` is `jax.jacfwd` itself, for an `fn` whose derivative runs through
+    `while` loops (ODE integrations: the finite-rod and tweezer models).  Linearising splits
+    the forward-mode program into its primal and tangent halves, and a `while` loop with
+    tangents in its carry cannot be split: JAX keeps the primal loop and runs it once more,
+    whole, inside the tangent half.  Measured (one program, loaded 2-core machine), the
+    README's shape fit: trace 17.9 -> 11.0 s, XLA compilation 51.5 -> 32.9 s, a call
+    8.6 -> 7.1 ms; a tweezer force-distance fit of 80 points: 4.3 -> 2.6 s, 7.8 -> 4.6 s,
+    0.96 -> 0.69 ms; 200 points with hat curves: 8.9 -> 8.1 s, 25.2 -> 16.3 s,
+    19.0 -> 10.1 ms; the same Jacobians to 1e-14."""
+    if through_loops:
+        return jax.jacfwd(fn, has_aux=has_aux)(x)
     if has_aux:
         _, linear, aux = jax.linearize(fn, x, has_aux=True)
     else:

@@ -326,7 +326,8 @@ def minimise(z0, model: AbstractForwardModel, param: Parameterisation, solver, m
 
     args = (model, param)
     if isinstance(solver, optx.AbstractLeastSquaresSolver):
-        sol = optx.least_squares(with_materialised_jacobian(fn), solver, z0, args, max_steps=max_steps, throw=False)
+        materialised = with_materialised_jacobian(fn, through_loops=model.forward_mode_only)
+        sol = optx.least_squares(materialised, solver, z0, args, max_steps=max_steps, throw=False)
         r = final_residuals(sol)
     else:
         cost = lambda z, a: 0.5 * jnp.sum(fn(z, a) ** 2)  # noqa: E731
@@ -407,7 +408,7 @@ def _split_jacobian_and_predictions(static, q, arrays):
         r, predicted = evaluate(qq, model, param)
         return r, (r, predicted)
 
-    return jacobian_forward(residuals, q, has_aux=True)
+    return jacobian_forward(residuals, q, has_aux=True, through_loops=model.forward_mode_only)
 
 
 def _solver(solver, rtol, atol, learning_rate):

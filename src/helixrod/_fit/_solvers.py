@@ -87,10 +87,10 @@ def make_solver(name: str, rtol: float = 1e-10, atol: float = 1e-12, learning_ra
     raise ValueError(f"solver must be one of {SOLVERS} or an optimistix least-squares solver or minimiser, got {name!r}")
 
 
-def with_materialised_jacobian(fn: Callable) -> Callable:
+def with_materialised_jacobian(fn: Callable, through_loops: bool = False) -> Callable:
     """`fn(z, args)` (residuals) whose forward derivative in `z` is its Jacobian, computed
-    once (`jacobian_forward`: one linearisation, all directions in one batch) and then
-    multiplied.
+    once (`jacobian_forward`: one linearisation, all directions in one batch; with
+    `through_loops`, `jax.jacfwd`, for residuals computed by loops) and then multiplied.
 
     An optimistix Gauss--Newton step linearises `fn` and applies the linear map in three
     places -- the Jacobian of the QR solve (all directions), the predicted reduction of the
@@ -114,7 +114,7 @@ def with_materialised_jacobian(fn: Callable) -> Callable:
         if t_z is None:
             value = fn(z, args)
             return value, jnp.zeros_like(value)
-        jacobian, value = jacobian_forward(lambda zz: (fn(zz, args),) * 2, z, has_aux=True)
+        jacobian, value = jacobian_forward(lambda zz: (fn(zz, args),) * 2, z, has_aux=True, through_loops=through_loops)
         return value, jacobian @ t_z
 
     return materialised

@@ -3,8 +3,8 @@
 data -> forward model (`forward_model`) -> parameterisation (which parameters are free, in
 which internal coordinates) -> starts -> minimise every start (one compiled call; for a
 forward model that is a solve of its own, a Gauss--Newton-type solver driven step by step
-around the model's one compiled program, `_stepwise`) -> the best start, canonical in its symmetry orbit -> Jacobian and predictions at it -> error
-analysis -> `StiffnessFit`.
+around the model's one compiled program, `_stepwise`) -> the best start, canonical in its
+symmetry orbit -> Jacobian and predictions at it -> error analysis -> `StiffnessFit`.
 """
 
 from __future__ import annotations

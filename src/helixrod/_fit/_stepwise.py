@@ -8,10 +8,10 @@ start scan and the error analysis use: measured on the README's shape fit (its m
 linearised), 31 s and 36 s of XLA compilation (and 6 s and 18 s of tracing) for the two
 copies.  Here the solver's own `init`, `step` and `terminate` run in a small compiled
 program, and at every step the residuals and Jacobian come from the one model program,
-evaluated by the caller at the point the solver asks for.  A Gauss--Newton-type step (`optimistix.AbstractGaussNewton`:
-Gauss--Newton, Levenberg--Marquardt, dogleg) evaluates its function only there, at
-`state.y_eval`, and reads its value and linear map: it sees the model as its affine
-expansion about that point, exact in all it reads.  The loop is `optimistix`'s own
+evaluated by the caller at the point the solver asks for.  A Gauss--Newton-type step
+(`optimistix.AbstractGaussNewton`: Gauss--Newton, Levenberg--Marquardt, dogleg) evaluates
+its function only there, at `state.y_eval`, and reads its value and linear map: it sees
+the model as its affine expansion about that point, exact in all it reads.  The loop is `optimistix`'s own
 (`optimistix._iterate`): the same steps, termination and result codes (to round-off: the
 two programs round differently, and where the loss changes at round-off only, accepting a
 step is decided by rounding).  Each step costs a round trip to Python, ~0.3 ms.
@@ -78,13 +78,13 @@ def _step(static, arrays, z, dynamic, r, J_physical):
 
 
 def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver, max_steps: int):
-    """Minimise $\tfrac12|r|^2$ over internal coordinates `z` from `z0` with the
+    """Minimise $\\tfrac12|r|^2$ over internal coordinates `z` from `z0` with the
     Gauss--Newton-type `solver` (`steppable`), at most `max_steps` steps.
     `jacobian_at(q)` returns the residuals and their Jacobian `(r, dr/dq)` at the physical
     values `q = physical(z)` (a compiled program's concrete output; `physical` a
     differentiable map, a pytree such as an `equinox.Module`'s method, compiled into the
     step).  Returns what `optimistix.least_squares` would -- the solution `z`, the cost
-    $\tfrac12|r|^2$ there (`inf` where not finite), a `RESULTS` code and the number of
+    $\\tfrac12|r|^2$ there (`inf` where not finite), a `RESULTS` code and the number of
     steps -- with the model evaluated once per step, by `jacobian_at`."""
     z = jnp.asarray(z0)
     if not np.all(np.isfinite(np.asarray(z))):

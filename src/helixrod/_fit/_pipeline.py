@@ -485,10 +485,10 @@ def fit_stiffness(
       another, each step's residuals and Jacobian from the one compiled program of the
       model that the error analysis uses (`batching` does not apply): the first call
       compiles the model once instead of twice, and each step pays a round trip to
-      Python, ~0.3 ms (measured with the model's `jax.jacfwd` Jacobian in both: a tweezer
-      force-distance fit's 8 steps in 7.9 ms stepwise, 5.2 ms in optimistix's compiled
-      loop; with the README's shape fit, first calls 76 -> 27 s and later calls 62-68 ->
-      70-75 ms against the previous release).  The default for
+      Python (measured with the model's `jax.jacfwd` Jacobian in both: a tweezer
+      force-distance fit's 8 steps in 6.0-6.7 ms stepwise, 5.0-5.8 ms in optimistix's
+      compiled loop; with the README's shape fit, first calls 76 -> 27 s and later calls
+      62-68 -> 70-75 ms against the previous release).  The default for
       helices (`n_starts=None`) stops early: the same sequence of up to 32 starts is
       solved in batches of 6 (one compiled program) with at most 48 steps each, until
       two starts agree on the best minimum (cost within 1e-6 relative, parameters within

@@ -14,7 +14,10 @@ its function only there, at `state.y_eval`, and reads its value and linear map: 
 the model as its affine expansion about that point, exact in all it reads.  The loop is `optimistix`'s own
 (`optimistix._iterate`): the same steps, termination and result codes (to round-off: the
 two programs round differently, and where the loss changes at round-off only, accepting a
-step is decided by rounding).  Each step costs a round trip to Python, ~0.3 ms.
+step is decided by rounding).  Each step costs a round trip to Python; the next point's
+model evaluation is asked for before the step's `terminate` is read, so that it runs while
+Python waits (a tweezer fit's 8 steps: 7.3-8.4 ms -> 6.0-6.7 ms, against 5.0-5.8 ms in
+optimistix's compiled loop).
 """
 
 from __future__ import annotations
@@ -85,7 +88,8 @@ def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver
     differentiable map, a pytree such as an `equinox.Module`'s method, compiled into the
     step).  Returns what `optimistix.least_squares` would -- the solution `z`, the cost
     $\\tfrac12|r|^2$ there (`inf` where not finite), a `RESULTS` code and the number of
-    steps -- with the model evaluated once per step, by `jacobian_at`."""
+    steps -- with the model evaluated once per step, by `jacobian_at` (and once more, at
+    the point the solver would have tried next, when it stops before `max_steps`)."""
     z = jnp.asarray(z0)
     if not np.all(np.isfinite(np.asarray(z))):
         return z, jnp.asarray(jnp.inf, z.dtype), RESULTS.nonfinite, jnp.asarray(0, jnp.int32)
@@ -93,12 +97,16 @@ def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver
     r, J = jacobian_at(_physical_at(physical, z))
     dynamic = _start(static, arrays, z, r, J)
     terminate, result, steps = False, RESULTS.successful, 0
-    while not terminate and succeeded(result) and steps < max_steps:
-        if steps:  # the first evaluation, at z0 = y_eval, is done above
-            r, J = jacobian_at(q_eval)
+    while steps < max_steps:
         z, dynamic, terminate, result, q_eval = _step(static, arrays, z, dynamic, r, J)
-        terminate = bool(terminate)
         steps += 1
+        if steps < max_steps:
+            # Asked for before `terminate` is read: JAX dispatches asynchronously, so the
+            # model runs while Python waits on the step.  Wasted after the last step.
+            r, J = jacobian_at(q_eval)
+        terminate = bool(terminate)
+        if terminate or not succeeded(result):
+            break
     if succeeded(result) and not terminate:
         result = RESULTS.nonlinear_max_steps_reached
     residuals = dynamic.f_info.residual  # at the last accepted point, z

@@ -18,13 +18,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._compile import filter_jit
 from ._equilibria import HelixEquilibria
 from ._geometry import helix_centreline, helix_frame
 from ._lie import BodyVelocityTerm, CommutatorFreeRK4, MuntheKaasRK, RodState, check_rotation, tangent
-from ._misc import float_dtype, increasing_within, is_concrete
+from ._misc import differentiated_part, float_dtype, increasing_within, is_concrete
 from ._rod import check_one_rod
 from ._status import RESULTS, promote, raise_if_failed
 
@@ -211,7 +212,7 @@ def solve_static(
     atol: float | None = None,
     steps: int | None = None,
     max_steps: int = 100_000,
-    adjoint: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint(),
+    adjoint: diffrax.AbstractAdjoint | None = None,
     throw: bool = True,
 ) -> KirchhoffSolution:
     """Integrate the static Kirchhoff equations from $s = 0$ to $s$ = `length`.
@@ -246,8 +247,18 @@ def solve_static(
     - `rtol`, `atol`: PID step-size tolerances, default `1e-12` in float64 (`1e-6` in
       float32, which cannot meet tighter ones); `steps`: use that many equal steps
       instead (no error control; may be traced, then `max_steps` must cover it).
-    - `max_steps`, `adjoint` (default `RecursiveCheckpointAdjoint`, reverse mode; use
-      `diffrax.ForwardMode()` for `jax.jacfwd`) as in `diffrax.diffeqsolve`.
+    - `max_steps` as in `diffrax.diffeqsolve`.
+    - `adjoint`: how derivatives are taken.  `None` (default): `jax.grad`, `jax.jacrev`,
+      `jax.jacfwd` and `jax.jvp` all differentiate the solution through its forward
+      sensitivity equations, integrated with it (diffrax `Dopri8` in ambient coordinates, at
+      the same tolerances, one direction per differentiated input) when they are asked
+      for.  They are the derivatives of the solution, accurate to about the tolerance
+      times the growth of the flow, not of the steps; a failed sensitivity integration
+      gives NaN derivatives.  Reverse mode then costs no adjoint of the solver's step,
+      whose compilation is slow for the default solver (see the README).  With `steps`
+      (equal steps), `None` means `diffrax.RecursiveCheckpointAdjoint()`.  A diffrax
+      adjoint (`RecursiveCheckpointAdjoint()` for reverse mode, `ForwardMode()` for
+      forward mode) differentiates the steps themselves, as `diffrax.diffeqsolve` does.
     - `throw`: raise on failure (`helixrod.SolverError` when called eagerly, an equinox
       runtime error inside `jax.jit`); with `throw=False` read `result` and `ok`.
 
@@ -325,7 +336,6 @@ def _integrate(rod, n0, m0, length, frame0, x0, ts, rtol, atol, *, solver, steps
     """`solve_static` after its checks, as one program of its own (an eager call is one
     dispatch, compiled with helixrod's options)."""
     with_frame, store_frame, with_x = outputs
-    geometric = isinstance(solver, (CommutatorFreeRK4, MuntheKaasRK))
     dtype = n0.dtype
     finite = jnp.all(jnp.isfinite(n0)) & jnp.all(jnp.isfinite(m0))
     good_length = jnp.isfinite(length) & (length > 0)
@@ -335,47 +345,24 @@ def _integrate(rod, n0, m0, length, frame0, x0, ts, rtol, atol, *, solver, steps
     m0 = jnp.where(valid, m0, 0.0)
     length = jnp.where(valid, length, 1.0)
 
-    if ts is None:
-        save = diffrax.SaveAt(t1=True)
-    else:
+    if ts is not None:
         ts = jnp.where(valid, ts, jnp.linspace(0.0, 1.0, ts.shape[0], dtype=dtype))
-        save = diffrax.SaveAt(ts=ts)
-    if steps is not None:
-        controller = diffrax.ConstantStepSize()
-        dt0 = length / steps
-    else:
-        step_ts = None if dense else ts
-        dtmax = _stability_step(rod, n0, m0) if geometric else None
-        controller = diffrax.PIDController(rtol=rtol, atol=atol, step_ts=step_ts, dtmax=dtmax)
-        dt0 = None
-
     y0 = RodState(
         n0,
         m0,
         frame0 if with_frame else None,
         x0 if with_x else None,
     )
-    term = BodyVelocityTerm(_body_velocity) if geometric else diffrax.ODETerm(_ambient_field)
-    sol = diffrax.diffeqsolve(
-        term,
-        solver,
-        0.0,
-        length,
-        dt0,
-        y0,
-        args=rod,
-        saveat=save,
-        stepsize_controller=controller,
-        max_steps=max_steps,
-        adjoint=adjoint,
-        throw=False,
-    )
-    ys = sol.ys
+    flow = _Flow(solver, steps, max_steps, adjoint, dense)
+    if adjoint is None and steps is None:
+        s, ys, result, num_steps = _flow_by_sensitivities(rod, y0, length, ts, rtol, atol, flow=flow)
+    else:
+        s, ys, result, num_steps = flow(rod, y0, length, ts, rtol, atol)
     nan_if_invalid = lambda a: jnp.where(valid, a, jnp.nan)  # noqa: E731
     n, m = nan_if_invalid(ys.n), nan_if_invalid(ys.m)
     integrals = first_integrals(rod, n, m)
     solution = KirchhoffSolution(
-        s=sol.ts,
+        s=s,
         n=n,
         m=m,
         u=rod.twist(m),
@@ -383,11 +370,99 @@ def _integrate(rod, n0, m0, length, frame0, x0, ts, rtol, atol, *, solver, steps
         x=nan_if_invalid(ys.x) if with_x else None,
         first_integrals=integrals,
         drift=integrals - first_integrals(rod, n0, m0)[None],
-        result=RESULTS.where(valid, promote(sol.result), RESULTS.invalid_input),
+        result=RESULTS.where(valid, promote(result), RESULTS.invalid_input),
         valid_input=valid,
-        num_steps=sol.stats["num_accepted_steps"],
+        num_steps=num_steps,
     )
     return solution
+
+
+class _Flow(eqx.Module):
+    """The integration of `solve_static` from `y0` over `[0, length]`, saved at `ts` (or at
+    `length` when `None`): `(s, ys, result, accepted steps)`."""
+
+    solver: diffrax.AbstractSolver
+    steps: object  # None: adaptive; else the number of equal steps (an int or traced)
+    max_steps: int = eqx.field(static=True)
+    adjoint: diffrax.AbstractAdjoint | None
+    dense: bool = eqx.field(static=True)
+
+    def __call__(self, rod, y0: RodState, length, ts, rtol, atol):
+        geometric = isinstance(self.solver, (CommutatorFreeRK4, MuntheKaasRK))
+        save = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts)
+        if self.steps is not None:
+            controller = diffrax.ConstantStepSize()
+            dt0 = length / self.steps
+        else:
+            step_ts = None if self.dense else ts
+            dtmax = _stability_step(rod, y0.n, y0.m) if geometric else None
+            controller = diffrax.PIDController(rtol=rtol, atol=atol, step_ts=step_ts, dtmax=dtmax)
+            dt0 = None
+        term = BodyVelocityTerm(_body_velocity) if geometric else diffrax.ODETerm(_ambient_field)
+        adjoint = diffrax.RecursiveCheckpointAdjoint() if self.adjoint is None else self.adjoint
+        sol = diffrax.diffeqsolve(
+            term, self.solver, 0.0, length, dt0, y0, args=rod, saveat=save, stepsize_controller=controller,
+            max_steps=self.max_steps, adjoint=adjoint, throw=False,
+        )
+        return sol.ts, sol.ys, sol.result, sol.stats["num_accepted_steps"]
+
+
+@eqx.filter_custom_jvp
+def _flow_by_sensitivities(rod, y0, length, ts, rtol, atol, *, flow: _Flow):
+    """`flow(...)`, differentiated by its forward sensitivity equations (`_sensitivities`)."""
+    return flow(rod, y0, length, ts, rtol, atol)
+
+
+@_flow_by_sensitivities.def_jvp
+def _flow_by_sensitivities_jvp(primals, tangents, *, flow: _Flow):
+    # The sensitivities depend on the primals only and the tangent is linear in them, so
+    # reverse mode transposes a contraction, not the integration loop: `jax.grad` costs a
+    # forward integration of the sensitivities instead of the adjoint of the solver's step.
+    rod, y0, length, ts, rtol, atol = primals
+    t_rod, t_y0, t_length, t_ts = tangents[:4]
+    # Called again (not `flow`) so that a derivative of this rule uses this rule too.
+    s, ys, result, num_steps = _flow_by_sensitivities(*primals, flow=flow)
+    t_ys = jax.tree.map(jnp.zeros_like, ys)
+    diff, rest, t_diff = differentiated_part((rod, y0), (t_rod, t_y0))
+    if jax.tree.leaves(t_diff):
+        sensitivities = _sensitivities(diff, rest, length, ts, rtol, atol, flow.max_steps)
+        direction = ravel_pytree(t_diff)[0]
+        t_ys = jax.tree.map(lambda S: jnp.einsum("sp...,p->s...", S, direction), sensitivities)
+    t_s = t_length[None] if ts is None and t_length is not None else (None if ts is None else t_ts)
+    if t_s is not None:  # a saved point moves with its arc length
+        rate = jax.vmap(_ambient_field, in_axes=(0, 0, None))(s, ys, rod)
+        t_ys = jax.tree.map(lambda t, r: t + r * t_s.reshape(t_s.shape + (1,) * (r.ndim - 1)), t_ys, rate)
+    no_tangent = jax.tree.map(lambda _: None, (result, num_steps))
+    return (s, ys, result, num_steps), (t_s, t_ys, *no_tangent)
+
+
+def _sensitivities(diff, rest, length, ts, rtol, atol, max_steps):
+    r"""$\partial y(s)/\partial p$ at the saved points for the flat vector $p$ of the
+    differentiated inputs `diff` (of `(rod, y0)`; `rest` the others): the state and its
+    sensitivities $S' = f_y S + f_p$, $S(0) = \partial y_0/\partial p$, integrated together
+    in ambient coordinates by diffrax's `Dopri8` at the solve's tolerances, saved like the
+    solve.  Leaves `(saved, p, ...)`; NaN if the integration failed.  This differentiates the
+    solution, not the steps that approximate it: the derivatives agree with those of the
+    steps to about the tolerance (`tests/test_kirchhoff.py`)."""
+    p, unravel = ravel_pytree(diff)
+    basis = jnp.eye(p.size, dtype=p.dtype)
+    split = lambda q: eqx.combine(unravel(q), rest)  # noqa: E731
+
+    def field(s, state, q):
+        y, S = state
+        rate = lambda y, q: _ambient_field(s, y, split(q)[0])  # noqa: E731
+        return rate(y, q), jax.vmap(lambda Sj, e: jax.jvp(rate, (y, q), (Sj, e))[1])(S, basis)
+
+    start = lambda q: split(q)[1]  # noqa: E731
+    S0 = jax.vmap(lambda e: jax.jvp(start, (p,), (e,))[1])(basis)
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(field), diffrax.Dopri8(), 0.0, length, None, (start(p), S0), args=p,
+        saveat=diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts),
+        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol), max_steps=max_steps,
+        adjoint=diffrax.ForwardMode(), throw=False,
+    )
+    ok = sol.result == diffrax.RESULTS.successful
+    return jax.tree.map(lambda S: jnp.where(ok, S, jnp.nan), sol.ys[1])
 
 
 # -- uniform helices ---------------------------------------------------------------------

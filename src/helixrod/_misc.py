@@ -37,6 +37,16 @@ def no_gradient(tree):
     return jax.tree.map(lambda x: jax.lax.stop_gradient(x) if eqx.is_inexact_array(x) else x, tree)
 
 
+def differentiated_part(tree, tangents):
+    """(differentiated part of `tree`, the rest, its tangents) for a `filter_custom_jvp`
+    tangent pytree with `None` at undifferentiated leaves; `eqx.combine` joins the first
+    two again."""
+    is_none = lambda t: t is None  # noqa: E731
+    mask = jax.tree.map(lambda t: t is not None, tangents, is_leaf=is_none)
+    diff, static = eqx.partition(tree, mask)
+    return diff, static, eqx.filter(tangents, mask, is_leaf=is_none)
+
+
 def check_integer(value, name: str, owner: str, minimum: int = 1) -> int:
     """`value` as an `int`, or `ValueError` unless it is an integer (not a bool) >= `minimum`."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:

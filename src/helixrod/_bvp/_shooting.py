@@ -25,7 +25,7 @@ from jaxtyping import Array, Float
 
 from .._geometry import unloaded_observables, unloaded_state
 from .._lie import gibbs, rotation_z, so3_exp, twist_angle
-from .._misc import no_gradient
+from .._misc import differentiated_part, no_gradient
 from ._bulk import bulk_helix_at
 from ._ends import CONTROL_INDEX, LOADED, TWEEZER, Clamped, EndCondition
 from ._options import BoundaryValueOptions
@@ -47,15 +47,6 @@ def flow_jacobian(theta, wrench, options: BoundaryValueOptions, ode_tol):
     length), `ode_tol` = (rtol, atol) of the tangent integrations."""
     one = lambda w: piece_flow(theta, w, options, ode_tol)  # noqa: E731
     return jax.vmap(lambda v: jax.jvp(one, (wrench,), (v,))[1])(jnp.eye(6, dtype=wrench.dtype))
-
-
-def _tangent_part(tree, tangents):
-    """(differentiated part of `tree`, the rest, its tangents) for a `filter_custom_jvp`
-    tangent pytree with `None` at undifferentiated leaves."""
-    is_none = lambda t: t is None  # noqa: E731
-    mask = jax.tree.map(lambda t: t is not None, tangents, is_leaf=is_none)
-    diff, static = eqx.partition(tree, mask)
-    return diff, static, eqx.filter(tangents, mask, is_leaf=is_none)
 
 
 def per_piece(fn, xs):
@@ -88,7 +79,7 @@ def _flows_jvp(primals, tangents, *, options):
     if t_wrench is not None:
         t_out = t_out + jnp.einsum("kij,ki->kj", jac, t_wrench)
     if t_theta is not None and jax.tree.leaves(t_theta):
-        diff, static, t_diff = _tangent_part(theta, t_theta)
+        diff, static, t_diff = differentiated_part(theta, t_theta)
         flows = lambda d: per_piece(lambda w: piece_flow(eqx.combine(d, static), w, options, ode_tol), wrench)  # noqa: E731
         t_out = t_out + jax.jvp(flows, (diff,), (t_diff,))[1]
     return out, t_out
@@ -238,7 +229,7 @@ def _implicit_jvp(primals, tangents, *, options):
         return (y, pieces), jax.tree.map(jnp.zeros_like, (y, pieces))
     exact = eqx.tree_at(lambda a: a.ode_tol, args, jnp.concatenate([args.ode_tol[:2], args.ode_tol[:2]]))
     jac, pieces_jac = shooting_jacobian(y, exact, options, flows)
-    diff, static, t_diff = _tangent_part(args, t_args)
+    diff, static, t_diff = differentiated_part(args, t_args)
     residual = lambda d: shooting_residual(y, eqx.combine(d, static), options, materialise=False)  # noqa: E731
     _, (b, t_pieces) = jax.jvp(residual, (diff,), (t_diff,))
     good = jnp.all(jnp.isfinite(jac))

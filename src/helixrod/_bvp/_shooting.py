@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
 from .._geometry import unloaded_observables, unloaded_state
@@ -41,12 +42,18 @@ def piece_flow(theta, wrench, options: BoundaryValueOptions, ode_tol):
     return jnp.where(sol.ok, out, jnp.nan)
 
 
-def flow_jacobian(theta, wrench, options: BoundaryValueOptions, ode_tol):
+def flow_jacobian(theta, wrench, options: BoundaryValueOptions, ode_tol, theta_of=None):
     """Derivatives `(6, 18)` of one piece's flow (`piece_flow`: end position, frame, force and
     moment in the start frame) along the six local start wrenches; `theta` = (rod, piece
-    length), `ode_tol` = (rtol, atol) of the tangent integrations."""
-    one = lambda w: piece_flow(theta, w, options, ode_tol)  # noqa: E731
-    return jax.vmap(lambda v: jax.jvp(one, (wrench,), (v,))[1])(jnp.eye(6, dtype=wrench.dtype))
+    length), `ode_tol` = (rtol, atol) of the tangent integrations.  With `theta_of` (a
+    function from a flat vector to (rod, piece length)), `theta` is such a vector `(P,)`
+    and the derivatives along its entries follow the six: `(6 + P, 18)` from one
+    integration."""
+    if theta_of is None:
+        theta_of, theta = (lambda _, fixed=theta: fixed), jnp.zeros(0, wrench.dtype)
+    one = lambda w, q: piece_flow(theta_of(q), w, options, ode_tol)  # noqa: E731
+    basis = jnp.eye(6 + theta.size, dtype=wrench.dtype)
+    return jax.vmap(lambda e: jax.jvp(one, (wrench, theta), (e[:6], e[6:]))[1])(basis)
 
 
 def per_piece(fn, xs):
@@ -86,18 +93,23 @@ def _flows_jvp(primals, tangents, *, options):
 
 
 @eqx.filter_custom_jvp
-def _given_flows(wrench, flows, jacobian):
-    """`flows` `(k, 18)`, already integrated from `wrench` `(k, 6)`, differentiated in
-    `wrench` by their Jacobian `(k, 6, 18)`: a linearisation of the shooting equations
-    with no integration in it (`shooting_jacobian`)."""
+def _given_flows(wrench, theta, flows, jacobian):
+    """`flows` `(k, 18)`, already integrated from `wrench` `(k, 6)` with parameters `theta`
+    `(P,)`, differentiated in both by their Jacobian `(k, 6 + P, 18)` (`flow_jacobian`): a
+    linearisation of the shooting equations with no integration in it
+    (`shooting_jacobian`, `implicit`)."""
     return flows
 
 
 @_given_flows.def_jvp
 def _given_flows_jvp(primals, tangents):
-    wrench, flows, jacobian = primals
-    t_wrench = tangents[0]
-    t_flows = jnp.zeros_like(flows) if t_wrench is None else jnp.einsum("kij,ki->kj", jacobian, t_wrench)
+    wrench, theta, flows, jacobian = primals
+    t_wrench, t_theta = tangents[:2]
+    t_flows = jnp.zeros_like(flows)
+    if t_wrench is not None:
+        t_flows = t_flows + jnp.einsum("kij,ki->kj", jacobian[:, :6], t_wrench)
+    if t_theta is not None:
+        t_flows = t_flows + jnp.einsum("kij,i->kj", jacobian[:, 6:], t_theta)
     return flows, t_flows
 
 
@@ -184,8 +196,10 @@ def shooting_jacobian(y, args: ShootingArgs, options: BoundaryValueOptions, flow
     _, local = _local_wrenches(y, args, k)
     jacobian = per_piece(lambda w: flow_jacobian(theta, w, options, args.ode_tol[2:]), local)  # (k, 6, 18)
 
+    no_theta = jnp.zeros(0, y.dtype)
+
     def residual(z):
-        r, (pieces, _) = _residual_and_flows(z, args, options, flows_of=lambda w: _given_flows(w, flows, jacobian))
+        r, (pieces, _) = _residual_and_flows(z, args, options, flows_of=lambda w: _given_flows(w, no_theta, flows, jacobian))
         return r, pieces
 
     _, lin = jax.linearize(residual, y)
@@ -212,9 +226,11 @@ def implicit(y, pieces, flows, args, *, options):
     """The root `y` of the shooting equations at `args` and the `pieces` there, with the
     derivatives of the implicit function theorem: $\\dot y = -J^{-1}\\,\\partial_\\theta F\\,
     \\dot\\theta$ and $\\dot P = P_y\\dot y + \\partial_\\theta P\\,\\dot\\theta$, with the Jacobians
-    $J = F_y$ and $P_y$ from the `flows` there and their derivatives integrated at the ODE
-    tolerance itself (the root solve steers with looser ones; `shooting_jacobian`), and
-    one forward-mode pass through the flows for $\\partial_\\theta$.  (Not
+    $J = F_y$, $P_y$, $\\partial_\\theta F$ and $\\partial_\\theta P$ from the `flows` there
+    and their derivatives along the six start wrenches and every differentiated scalar of
+    the rod and the length, integrated together at the ODE tolerance itself (the root solve
+    steers with looser ones; `flow_jacobian`): one integration of each piece, whatever the
+    number of tangent directions.  (Not
     `optimistix.ImplicitAdjoint`: its linear solve raises on a non-finite input, so one
     failed point would abort a differentiated batch; here a failed point gets NaN
     derivatives.)"""
@@ -227,11 +243,28 @@ def _implicit_jvp(primals, tangents, *, options):
     t_args = tangents[3]
     if t_args is None or not jax.tree.leaves(t_args):
         return (y, pieces), jax.tree.map(jnp.zeros_like, (y, pieces))
-    exact = eqx.tree_at(lambda a: a.ode_tol, args, jnp.concatenate([args.ode_tol[:2], args.ode_tol[:2]]))
-    jac, pieces_jac = shooting_jacobian(y, exact, options, flows)
-    diff, static, t_diff = differentiated_part(args, t_args)
-    residual = lambda d: shooting_residual(y, eqx.combine(d, static), options, materialise=False)  # noqa: E731
-    _, (b, t_pieces) = jax.jvp(residual, (diff,), (t_diff,))
+    k = options.segments
+    diff, rest, t_diff = differentiated_part(args, t_args)
+    # The flows depend on the arguments through the start wrenches and through the rod and
+    # the length only: their Jacobian along those scalars is integrated with the wrench one.
+    q, unravel = ravel_pytree((diff.rod, diff.length))
+
+    def theta_of(q):
+        rod, length = unravel(q)
+        return eqx.combine(rod, rest.rod), eqx.combine(length, rest.length) / k
+
+    _, local = _local_wrenches(y, args, k)
+    jacobian = per_piece(lambda w: flow_jacobian(q, w, options, args.ode_tol[:2], theta_of), local)  # (k, 6 + P, 18)
+
+    def residual(z, d):
+        theta = ravel_pytree((d.rod, d.length))[0]
+        given = lambda w: _given_flows(w, theta, flows, jacobian)  # noqa: E731
+        r, (pieces, _) = _residual_and_flows(z, eqx.combine(d, rest), options, flows_of=given)
+        return r, pieces
+
+    _, (b, t_pieces) = jax.jvp(lambda d: residual(y, d), (diff,), (t_diff,))
+    _, lin = jax.linearize(lambda z: residual(z, diff), y)
+    jac, pieces_jac = jax.vmap(lin, out_axes=-1)(jnp.eye(y.size, dtype=y.dtype))
     good = jnp.all(jnp.isfinite(jac))
     safe = jnp.where(good, jac, jnp.eye(y.size, dtype=y.dtype))
     t_y = jnp.where(good, -jnp.linalg.solve(safe, b), jnp.nan)

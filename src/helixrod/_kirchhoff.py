@@ -428,7 +428,7 @@ def _flow_by_sensitivities_jvp(primals, tangents, *, flow: _Flow):
         sensitivities = _sensitivities(diff, rest, length, ts, rtol, atol, flow.max_steps)
         direction = ravel_pytree(t_diff)[0]
         t_ys = jax.tree.map(lambda S: jnp.einsum("sp...,p->s...", S, direction), sensitivities)
-    t_s = t_length[None] if ts is None and t_length is not None else (None if ts is None else t_ts)
+    t_s = t_ts if ts is not None else (None if t_length is None else t_length[None])
     if t_s is not None:  # a saved point moves with its arc length
         rate = jax.vmap(_ambient_field, in_axes=(0, 0, None))(s, ys, rod)
         t_ys = jax.tree.map(lambda t, r: t + r * t_s.reshape(t_s.shape + (1,) * (r.ndim - 1)), t_ys, rate)

@@ -11,13 +11,13 @@ program, and at every step the residuals and Jacobian come from the one model pr
 evaluated by the caller at the point the solver asks for.  A Gauss--Newton-type step
 (`optimistix.AbstractGaussNewton`: Gauss--Newton, Levenberg--Marquardt, dogleg) evaluates
 its function only there, at `state.y_eval`, and reads its value and linear map: it sees
-the model as its affine expansion about that point, exact in all it reads.  The loop is `optimistix`'s own
-(`optimistix._iterate`): the same steps, termination and result codes (to round-off: the
-two programs round differently, and where the loss changes at round-off only, accepting a
-step is decided by rounding).  Each step costs a round trip to Python; the next point's
-model evaluation is asked for before the step's `terminate` is read, so that it runs while
-Python waits (a tweezer fit's 8 steps: 7.3-8.4 ms -> 6.0-6.7 ms, against 5.0-5.8 ms in
-optimistix's compiled loop).
+the model as its affine expansion about that point, exact in all it reads.  The loop is
+`optimistix`'s own (`optimistix._iterate`): the same steps, termination and result codes
+(to round-off: the two programs round differently, and where the loss changes at round-off
+only, accepting a step is decided by rounding).  Each step costs a round trip to Python;
+the next point's model evaluation is asked for before the step's `terminate` is read, so
+that it runs while Python waits (a tweezer fit's 8 steps: 7.3-8.4 ms -> 6.0-6.7 ms,
+against 5.0-5.8 ms in optimistix's compiled loop).
 """
 
 from __future__ import annotations

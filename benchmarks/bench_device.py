@@ -1,6 +1,7 @@
 """helix_equilibria and sweep on whatever device JAX picks (a GPU when there is one),
 unchanged code: throughput against the numpy peer on the host CPU, and agreement with the
-same computation on JAX's CPU backend.
+same computation on JAX's CPU backend; `solve_static` and `jax.grad` through it at the
+defaults (one solve and a vmapped batch) against the CPU backend.
 
     python benchmarks/bench_device.py [--quick]
 
@@ -36,6 +37,56 @@ ROD = hr.Rod(**ROD_ARGS)
 def fields(kappa, tau):
     eq = hr.helix_equilibria(ROD, kappa, tau)
     return eq.phi, eq.valid, eq.force, eq.moment, eq.stable
+
+
+def end_moment(n0, m0):
+    """A scalar of the non-helical solve of bench_kirchhoff, shortened to L = 10: at L = 40
+    its gradients reach 1e4-1e8 (the flow amplifies perturbations), so two correct backends
+    (or a loop and a vmap on one) differ there by up to ~1e-5 relative; at L = 10 by ~1e-10."""
+    return jnp.sum(hr.solve_static(ROD, n0, m0, 10.0).m[-1] ** 2)
+
+
+def kirchhoff_on_device(quick: bool) -> dict:
+    """One solve and its gradient (the forward sensitivities), then a batch of them under
+    vmap, on the default device and on the CPU backend: agreement, compile and run times."""
+    rng = np.random.default_rng(2)
+    batch = 1000 if quick else 10_000
+    n0 = np.array([0.1, -0.2, 0.5]) + 0.05 * rng.normal(size=(batch, 3))
+    m0 = np.array([0.3, 0.2, 0.9]) + 0.05 * rng.normal(size=(batch, 3))
+    value_and_grad = jax.jit(jax.value_and_grad(end_moment, argnums=(0, 1)))
+    batched = jax.jit(jax.vmap(jax.value_and_grad(end_moment, argnums=(0, 1))))
+    out = {}
+    for name, device in (("device", jax.devices()[0]), ("cpu", jax.devices("cpu")[0])):
+        with jax.default_device(device):
+            one = jax.device_put((n0[0], m0[0]), device)
+            many = jax.device_put((n0, m0), device)
+            start = time.perf_counter()
+            first = jax.block_until_ready(value_and_grad(*one))
+            compile_one = time.perf_counter() - start
+            seconds_one = best_time(lambda: value_and_grad(*one), 5)
+            start = time.perf_counter()
+            values = jax.block_until_ready(batched(*many))
+            compile_many = time.perf_counter() - start
+            seconds_many = best_time(lambda: batched(*many), 2)
+        out[name] = dict(first_call_s=compile_one, seconds=seconds_one, batch=batch, batch_first_call_s=compile_many,
+                         batch_seconds=seconds_many, solves_per_s=batch / seconds_many,
+                         value=np.asarray(first[0]).item(), grad=np.concatenate([np.asarray(g) for g in first[1]]).tolist(),
+                         batch_values=np.asarray(values[0]), batch_grads=np.concatenate([np.asarray(g) for g in values[1]], axis=1))
+        print(f"solve_static + grad on {name}: one {seconds_one * 1e3:.2f} ms (first call {compile_one:.1f} s); "
+              f"vmap of {batch}: {seconds_many * 1e3:.1f} ms ({batch / seconds_many:.3g} solves/s, first call {compile_many:.1f} s)")
+    here, cpu = out["device"], out["cpu"]
+    scale = np.max(np.abs(cpu["batch_grads"]), axis=1)
+    agreement = dict(
+        value_rel=abs(here["value"] - cpu["value"]) / abs(cpu["value"]),
+        grad_rel=float(np.max(np.abs(np.subtract(here["grad"], cpu["grad"]))) / np.max(np.abs(cpu["grad"]))),
+        batch_value_rel=float(np.max(np.abs(here["batch_values"] - cpu["batch_values"]) / np.abs(cpu["batch_values"]))),
+        batch_grad_rel=float(np.max(np.max(np.abs(here["batch_grads"] - cpu["batch_grads"]), axis=1) / scale)),
+        batch_finite=bool(np.all(np.isfinite(here["batch_grads"]))))
+    print("solve_static on the device against the CPU backend: " + ", ".join(f"{k} {v:.1e}" if isinstance(v, float) else f"{k} {v}"
+                                                                     for k, v in agreement.items()))
+    for side in (here, cpu):
+        del side["batch_values"], side["batch_grads"]
+    return dict(device=here, cpu=cpu, agreement=agreement)
 
 
 def main():
@@ -90,6 +141,7 @@ def main():
         seconds = best_time(lambda: hr.sweep(ROD, kappa, tau, fields=names, progress=False), 2)
         report["sweeps"].append(dict(points=n_side**2, fields=list(names), seconds=seconds, points_per_s=n_side**2 / seconds))
         print(f"sweep {n_side**2:>10} points {names}: {seconds:.2f} s ({n_side**2 / seconds:.3g}/s)")
+    report["kirchhoff"] = kirchhoff_on_device(opts.quick)
     RESULTS.mkdir(exist_ok=True)
     path = RESULTS / f"bench_device_{device.platform}.json"
     path.write_text(json.dumps(report, indent=1))

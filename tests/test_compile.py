@@ -15,6 +15,7 @@ from helixrod import _compile
 
 def _route_with(monkeypatch, options):
     monkeypatch.setattr(_compile, "COMPILER_OPTIONS", options)
+    monkeypatch.setattr(jax, "default_backend", lambda: "cpu")  # the options' backend, on any machine
     return _compile.jit(lambda x: jnp.sin(x) * 2.0), _compile.filter_jit(lambda x: jnp.cos(x) + 1.0)
 
 
@@ -29,6 +30,16 @@ def test_options_go_to_top_level_calls_only(monkeypatch):
         np.testing.assert_allclose(jax.jit(lambda y: fn(y) + 1.0)(x), expected + 1.0, rtol=1e-15)
         np.testing.assert_allclose(jax.vmap(fn)(x), expected, rtol=1e-15)
         np.testing.assert_allclose(jax.grad(lambda y: fn(y).sum())(x), slope, rtol=1e-15, atol=1e-16)
+
+
+def test_options_stay_off_other_backends(monkeypatch):
+    # XLA's GPU backend refuses the CPU options ("No such compile option"; seen on an H200):
+    # where the default backend is not the CPU, a top-level call is the plain program.
+    sine, cosine = _route_with(monkeypatch, {"xla_helixrod_no_such_option": True})
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    x = jnp.linspace(0.0, 1.0, 5)
+    np.testing.assert_allclose(sine(x), 2.0 * np.sin(np.asarray(x)), rtol=1e-15)
+    np.testing.assert_allclose(cosine(x), np.cos(np.asarray(x)) + 1.0, rtol=1e-15)
 
 
 def test_no_options_is_the_plain_jit(monkeypatch):
@@ -74,6 +85,16 @@ def test_environment_variable_turns_the_options_off(setting):
     assert out.stdout.strip() == expected
 
 
+@pytest.mark.parametrize(("release", "options", "small_loops"),
+                         [("0.9.2", {}, False), ("0.10.2", {"xla_cpu_use_fusion_emitters": False}, True), ("0.11.2", {}, True)])
+def test_options_follow_the_jaxlib_release(monkeypatch, release, options, small_loops):
+    # jaxlib 0.11 has no classic emitters: its XLA refuses the option (an abort from XLA_FLAGS).
+    monkeypatch.setattr(_compile.metadata, "version", lambda name: release)
+    monkeypatch.delenv(_compile.OPTIONS_ENVIRONMENT_VARIABLE, raising=False)
+    assert _compile._compiler_options() == options
+    assert _compile._settings_apply() is small_loops
+
+
 def test_small_loop_request_respects_the_environment():
     flag = f"xla_cpu_small_while_loop_byte_threshold={_compile.SMALL_LOOP_BYTES}"
     environ = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
@@ -101,6 +122,7 @@ print("xla_cpu_small_call" in jax.jit(loop).lower(jnp.ones(512)).compile().as_te
 def test_import_compiles_small_loops_into_one_kernel(setting):
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     env[_compile.OPTIONS_ENVIRONMENT_VARIABLE] = setting
+    env["JAX_PLATFORMS"] = "cpu"  # a CPU setting: the CPU's program also on a machine with a GPU
     out = subprocess.run([sys.executable, "-c", _LOOP_PROGRAM], env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == ("True" if setting == "1" else "False")

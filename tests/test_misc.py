@@ -142,11 +142,14 @@ def test_lowest_eigenpair_matches_eigh(rng):
     """Count below a shift, lowest eigenvalue and its vector against `numpy.linalg.eigh`, on
     random symmetric matrices, ones with a double lowest eigenvalue, ones with a huge
     decoupled diagonal entry in the last row (the stability Hessian's fixed slots: the
-    eigenpair must stay accurate relative to the rest, not to that entry) and graded ones;
-    and under `vmap`."""
+    eigenpair must stay accurate relative to the rest, not to that entry; a 3x3 one with an
+    exactly zero pivot at the computed eigenvalue once had its vector wrong in the 6th
+    digit) and graded ones; degenerate ones; and under `vmap`."""
     lowest_eigenpair = jax.jit(_misc.lowest_eigenpair)
+    # Five sizes (each a compile), prime to the four kinds: every size meets every kind twice.
+    sizes = (2, 3, 8, 24, 59)
     for trial in range(40):
-        n = int(rng.integers(2, 60))
+        n = sizes[trial % len(sizes)]
         A = rng.normal(size=(n, n))
         A = A + A.T
         if trial % 4 == 1:  # last, as in the Hessian: the reduction then leaves it decoupled
@@ -172,6 +175,11 @@ def test_lowest_eigenpair_matches_eigh(rng):
         v = np.asarray(vector)
         assert np.linalg.norm(v) == pytest.approx(1.0, abs=1e-12)
         assert np.linalg.norm(A @ v - w[0] * v) <= 1e-12 * soft, trial
+    # Degenerate: the zero matrix (a zero pivot in every row; any unit vector will do) and 1x1.
+    count, lowest, vector = lowest_eigenpair(np.zeros((8, 8)), 0.5)
+    assert int(count) == 8 and float(lowest) == 0.0 and np.linalg.norm(vector) == pytest.approx(1.0, abs=1e-12)
+    count, lowest, vector = _misc.lowest_eigenpair(np.array([[-2.0]]), 0.0)
+    assert (int(count), np.asarray(vector).tolist()) == (1, [1.0]) and float(lowest) == pytest.approx(-2.0, rel=1e-15)
     batch = np.stack([np.diag([3.0, 1.0, 2.0]), np.diag([-1.0, 5.0, 4.0])])
     counts, lows, _ = jax.vmap(_misc.lowest_eigenpair, in_axes=(0, None))(batch, 0.0)
     assert counts.tolist() == [0, 1] and np.allclose(lows, [1.0, -1.0], rtol=1e-15, atol=0)

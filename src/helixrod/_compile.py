@@ -10,9 +10,11 @@ scalar arithmetic and selects (the register root, the Lie-group steps), and for 
 classic emitters compile about twice as fast and run as fast or faster.  Measured with
 jaxlib 0.10.2 on one core: the register root of 64 points compiles in 3.6 s instead of
 6.7 s; `helix_equilibria` first calls (1e4 points) 4.5 s instead of 7.2 s and runs 249 instead
-of 388 ns per point, (1e6 points) 4.8 s instead of 10.5 s at the same speed.  The option
-names a CPU setting; other backends do not read it.  `HELIXROD_COMPILER_OPTIONS=0` in the
-environment (read at import) turns it off.
+of 388 ns per point, (1e6 points) 4.8 s instead of 10.5 s at the same speed (jaxlib 0.11
+has no classic emitters and no such option: nothing is passed there).  The option
+names a CPU setting, and XLA's GPU backend refuses it ("No such compile option"), so it is
+passed only when JAX's default backend is the CPU; elsewhere every program is the plain
+`jax.jit`.  `HELIXROD_COMPILER_OPTIONS=0` in the environment (read at import) turns it off.
 
 One more setting cannot be passed per program: XLA's CPU backend compiles a `while` loop
 whose operations touch at most `xla_cpu_small_while_loop_byte_threshold` bytes (1 kB by
@@ -54,20 +56,27 @@ def _version(text: str) -> tuple[int, ...]:
 OPTIONS_ENVIRONMENT_VARIABLE = "HELIXROD_COMPILER_OPTIONS"
 
 
+def _jaxlib_version() -> tuple[int, ...]:
+    try:
+        return _version(metadata.version("jaxlib"))
+    except metadata.PackageNotFoundError:
+        return (0,)
+
+
 def _settings_apply(environ=os.environ) -> bool:
     """Whether helixrod's XLA settings apply: not with `HELIXROD_COMPILER_OPTIONS=0`, and
     only on the jaxlib releases they were measured with (an option XLA does not know is a
     compile error)."""
     if environ.get(OPTIONS_ENVIRONMENT_VARIABLE, "1").strip() == "0":
         return False
-    try:
-        return _version(metadata.version("jaxlib")) >= (0, 10)
-    except metadata.PackageNotFoundError:
-        return False
+    return _jaxlib_version() >= (0, 10)
 
 
 def _compiler_options() -> dict[str, bool]:
-    return {"xla_cpu_use_fusion_emitters": False} if _settings_apply() else {}
+    # jaxlib 0.11 dropped XLA's classic CPU emitters and the option with them: jaxlib 0.11.2
+    # aborts on "Unknown flag in XLA_FLAGS: --xla_cpu_use_fusion_emitters=false" (seen on a
+    # GPU machine), so the option goes to the 0.10 releases only.
+    return {"xla_cpu_use_fusion_emitters": False} if _settings_apply() and _jaxlib_version() < (0, 11) else {}
 
 
 #: XLA options of every program helixrod compiles on its own (see the module docstring).
@@ -104,20 +113,27 @@ def _at_top_level() -> bool:
     return _trace_state_clean is not None and _trace_state_clean()
 
 
+def _compiles_for_cpu() -> bool:
+    # The options name CPU settings that other backends refuse.  On a machine whose default
+    # backend is a GPU, a program asked for on the CPU (`jax.default_device`) takes the plain
+    # path too: compiled with XLA's defaults, correct, only slower to compile.
+    return jax.default_backend() == "cpu"
+
+
 def _with_options(plain, tuned):
-    """`tuned` (compiled with `COMPILER_OPTIONS`) at the top level, else `plain`."""
+    """`tuned` (compiled with `COMPILER_OPTIONS`) at the top level on the CPU, else `plain`."""
     if not COMPILER_OPTIONS:
         return plain
 
     @functools.wraps(plain)
     def call(*args, **kwargs):
-        return (tuned if _at_top_level() else plain)(*args, **kwargs)
+        return (tuned if _at_top_level() and _compiles_for_cpu() else plain)(*args, **kwargs)
 
     return call
 
 
 def jit(fun=None, /, **kwargs):
-    """`jax.jit` with `COMPILER_OPTIONS` at the top level; usable as `@jit`,
+    """`jax.jit` with `COMPILER_OPTIONS` at the top level on the CPU; usable as `@jit`,
     `@jit(static_argnames=...)` or `jit(fun, ...)`."""
     if fun is None:
         return functools.partial(jit, **kwargs)

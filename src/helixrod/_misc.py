@@ -225,6 +225,42 @@ def _sturm_count(d: Array, e2: Array, shift: Array, pivmin: Array) -> Array:
     return jnp.sum(negative).astype(jnp.int32)
 
 
+def _shifted_tridiagonal_solve(d: Array, lower: Array, upper: Array, b: Array, pivmin: Array) -> Array:
+    """$x = T^{-1} b$ for the symmetric tridiagonal $T$ of diagonal `d` and off-diagonals
+    `lower` (`lower[0]` = 0) and `upper` (`upper[-1]` = 0) by its $LDL^T$ factorisation, for
+    inverse iteration at a shift next to the lowest eigenvalue, where $T$ is nearly
+    positive semidefinite and needs no pivoting.  A pivot that comes out (nearly) zero is
+    replaced by eps times its own row's entries, not the whole matrix's: JAX's
+    `tridiagonal_solve(perturb_singular=True)` scales it by the largest entry, and the
+    stability Hessian's huge decoupled slots then made the vector wrong in its 6th digit
+    (a 3x3 case of `tests/test_misc.py`).  The floor is at least sqrt(`pivmin`), so that
+    the solution of an all-zero row stays far from overflow (and its reciprocal a normal
+    number: XLA's CPU backend flushes subnormals to zero)."""
+    eps = jnp.finfo(d.dtype).eps
+    pivmin = jnp.sqrt(pivmin)
+
+    def eliminate(carry, row):
+        q_before, z_before = carry
+        di, li, ui, bi = row
+        multiplier = li / q_before
+        q = di - multiplier * li
+        floor = eps * (jnp.abs(di) + jnp.abs(li) + jnp.abs(ui)) + pivmin
+        q = jnp.where(jnp.abs(q) < floor, jnp.where(q < 0, -floor, floor), q)
+        z = bi - multiplier * z_before
+        return (q, z), (q, z)
+
+    one = jnp.ones((), d.dtype)
+    _, (q, z) = jax.lax.scan(eliminate, (one, jnp.zeros((), d.dtype)), (d, lower, upper, b))
+
+    def substitute(x_after, row):
+        qi, zi, ui = row
+        x = (zi - ui * x_after) / qi
+        return x, x
+
+    _, x = jax.lax.scan(substitute, jnp.zeros((), d.dtype), (q, z, upper), reverse=True)
+    return x
+
+
 #: At most this many bisection steps for the lowest eigenvalue (each halves the interval;
 #: they stop once it is within a few eps of the eigenvalue).
 _MAX_BISECTIONS = 256
@@ -272,11 +308,11 @@ def lowest_eigenpair(A: ArrayLike, shift: ArrayLike) -> tuple[Array, Array, Arra
 
     lo, hi, _ = jax.lax.while_loop(wide, bisect, (lo, hi, jnp.zeros((), jnp.int32)))
     lowest = 0.5 * (lo + hi)
-    # Inverse iteration from a start with no special symmetry; perturb_singular keeps the
-    # nearly singular solves finite.
+    # Inverse iteration from a start with no special symmetry.
     x = 1.0 + 0.1 * jnp.sin(jnp.arange(n, dtype=d.dtype))
     for _ in range(2):
-        x = jax.lax.linalg.tridiagonal_solve(lower, d - lowest, upper, x[:, None], perturb_singular=True)[:, 0]
+        x = _shifted_tridiagonal_solve(d - lowest, lower, upper, x, pivmin)
+        x = x / jnp.max(jnp.abs(x))
         x = x / jnp.linalg.norm(x)
     index = jnp.arange(n)
 
@@ -286,7 +322,7 @@ def lowest_eigenpair(A: ArrayLike, shift: ArrayLike) -> tuple[Array, Array, Arra
         v = jnp.where(index > i + 1, reflectors[:, i], 0.0) + (index == i + 1)
         return x - taus[i] * v * (v @ x)
 
-    return count, lowest, jax.lax.fori_loop(0, n - 1, reflect, x)
+    return count, lowest, x if n == 1 else jax.lax.fori_loop(0, n - 1, reflect, x)
 
 
 def write_atomically(path, write, *, binary: bool = True) -> None:

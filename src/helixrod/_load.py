@@ -77,7 +77,7 @@ def _under_load(rod, F0, M0, box, grid, newton_steps, max_solutions, rtol):
     kappa_max, tau_lo, tau_hi = box[0], box[1], box[2]
     ks = jnp.linspace(kappa_max / grid, kappa_max, grid, dtype=dtype)
     ts = jnp.linspace(tau_lo, tau_hi, grid, dtype=dtype)
-    eq = helix_equilibria(rod, ks[:, None], ts[None, :])
+    eq = helix_equilibria(rod, ks[:, None], ts[None, :], fields=("force", "moment"))
     scale_f = jnp.maximum(jnp.abs(F0), jnp.nanmean(jnp.abs(eq.force)))
     scale_m = jnp.maximum(jnp.abs(M0), jnp.nanmean(jnp.abs(eq.moment)))
     rf = (eq.force - F0) / scale_f
@@ -102,18 +102,23 @@ def _under_load(rod, F0, M0, box, grid, newton_steps, max_solutions, rtol):
     k0 = 0.5 * (ks[i] + ks[i + 1])
     t0 = 0.5 * (ts[j] + ts[j + 1])
 
-    def residual(x, fields=("force", "moment")):
-        # The wrench of each point's own slot, relative to the target; one batch, no vmap
-        # (tracing the register solve once per batch, not once per point, is what keeps
-        # the first call short).
-        eq = helix_equilibria(rod, x[:, 0], x[:, 1], fields=fields)
+    reported = ("phi", "force", "moment", "energy", "stable")
+
+    def residual(x):
+        # The wrench of each point's own slot, relative to the target, and the fields
+        # reported; one batch, no vmap (tracing the register solve once per batch, not once
+        # per point, is what keeps the first call short).
+        eq = helix_equilibria(rod, x[:, 0], x[:, 1], fields=reported)
         f, mo = (jnp.take_along_axis(v, slot[:, None], axis=1)[:, 0] for v in (eq.force, eq.moment))
         return jnp.stack([(f - F0) / scale_f, (mo - M0) / scale_m], axis=-1), eq
 
-    def newton_step(_, x):
-        # Every point is its own 2 x 2 system: two forward-mode directions give all the
-        # Jacobians at once.
-        r, linear = jax.linearize(lambda y: residual(y)[0], x)
+    def newton_step(_, state):
+        # Evaluates at x (what is reported once the steps are done), then steps: the
+        # newton_steps + 1 evaluations share one register solve in the program (a separate
+        # evaluation after the loop made the first call ~a third longer).  Every point is
+        # its own 2 x 2 system: two forward-mode directions give all the Jacobians at once.
+        x, _ = state
+        r, linear, eq = jax.linearize(residual, x, has_aux=True)
         unit_k = jnp.zeros_like(x).at[:, 0].set(1.0)
         jacobian = jnp.stack([linear(unit_k), linear(1.0 - unit_k)], axis=-1)
         det = jacobian[:, 0, 0] * jacobian[:, 1, 1] - jacobian[:, 0, 1] * jacobian[:, 1, 0]
@@ -122,16 +127,19 @@ def _under_load(rod, F0, M0, box, grid, newton_steps, max_solutions, rtol):
         dx = jnp.stack([dk, dt], axis=-1)
         # A non-finite step is skipped; a step out of the box keeps half the way to the wall.
         new = x - jnp.where(jnp.all(jnp.isfinite(dx), axis=-1, keepdims=True), dx, 0.0)
-        return jnp.stack(
+        new = jnp.stack(
             [
                 jnp.clip(new[:, 0], 0.5 * x[:, 0], kappa_max * 1.5),
                 jnp.clip(new[:, 1], tau_lo - (tau_hi - tau_lo), tau_hi + (tau_hi - tau_lo)),
             ],
             axis=-1,
         )
+        return new, (x, r, eq)
 
-    x = jax.lax.fori_loop(0, newton_steps, newton_step, jnp.stack([k0, t0], axis=-1))
-    r, sol = residual(x, fields=("phi", "force", "moment", "energy", "stable"))
+    x0 = jnp.stack([k0, t0], axis=-1)
+    evaluated = jax.eval_shape(residual, x0)
+    empty = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), (x0, *evaluated))
+    _, (x, r, sol) = jax.lax.fori_loop(0, newton_steps + 1, newton_step, (x0, empty))
     ok = jnp.max(jnp.abs(r), axis=-1) <= rtol
     inside = (x[:, 0] > 0) & (x[:, 0] <= kappa_max * (1 + 1e-12)) & (x[:, 1] >= tau_lo) & (x[:, 1] <= tau_hi)
     good = used & ok & inside

@@ -33,8 +33,8 @@ def test_options_go_to_top_level_calls_only(monkeypatch):
 
 
 def test_options_stay_off_other_backends(monkeypatch):
-    # XLA's GPU backend refuses the CPU options ("No such compile option"; seen on an H200):
-    # where the default backend is not the CPU, a top-level call is the plain program.
+    # The options name CPU settings: where the default backend is not the CPU (an H200 with
+    # jaxlib 0.11.2 failed every top-level program), a top-level call is the plain program.
     sine, cosine = _route_with(monkeypatch, {"xla_helixrod_no_such_option": True})
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     x = jnp.linspace(0.0, 1.0, 5)

@@ -10,11 +10,12 @@ scalar arithmetic and selects (the register root, the Lie-group steps), and for 
 classic emitters compile about twice as fast and run as fast or faster.  Measured with
 jaxlib 0.10.2 on one core: the register root of 64 points compiles in 3.6 s instead of
 6.7 s; `helix_equilibria` first calls (1e4 points) 4.5 s instead of 7.2 s and runs 249 instead
-of 388 ns per point, (1e6 points) 4.8 s instead of 10.5 s at the same speed (jaxlib 0.11
-has no classic emitters and no such option: nothing is passed there).  The option
-names a CPU setting, and XLA's GPU backend refuses it ("No such compile option"), so it is
-passed only when JAX's default backend is the CPU; elsewhere every program is the plain
-`jax.jit`.  `HELIXROD_COMPILER_OPTIONS=0` in the environment (read at import) turns it off.
+of 388 ns per point, (1e6 points) 4.8 s instead of 10.5 s at the same speed.  jaxlib 0.11
+has no classic emitters and no such option (on an H200 machine with jaxlib 0.11.2 every
+top-level program failed with "No such compile option"), so it is passed with jaxlib 0.10
+only, and only where JAX's default backend is the CPU, whose setting it names; elsewhere
+every program is the plain `jax.jit`.  `HELIXROD_COMPILER_OPTIONS=0` in the environment
+(read at import) turns it off.
 
 One more setting cannot be passed per program: XLA's CPU backend compiles a `while` loop
 whose operations touch at most `xla_cpu_small_while_loop_byte_threshold` bytes (1 kB by
@@ -73,9 +74,9 @@ def _settings_apply(environ=os.environ) -> bool:
 
 
 def _compiler_options() -> dict[str, bool]:
-    # jaxlib 0.11 dropped XLA's classic CPU emitters and the option with them: jaxlib 0.11.2
-    # aborts on "Unknown flag in XLA_FLAGS: --xla_cpu_use_fusion_emitters=false" (seen on a
-    # GPU machine), so the option goes to the 0.10 releases only.
+    # jaxlib 0.11 dropped XLA's classic CPU emitters and the option with them (jaxlib 0.11.2:
+    # "No such compile option" as a compiler option, "Unknown flag in XLA_FLAGS" and an abort
+    # as a flag), so the option goes to the 0.10 releases only.
     return {"xla_cpu_use_fusion_emitters": False} if _settings_apply() and _jaxlib_version() < (0, 11) else {}
 
 
@@ -114,7 +115,7 @@ def _at_top_level() -> bool:
 
 
 def _compiles_for_cpu() -> bool:
-    # The options name CPU settings that other backends refuse.  On a machine whose default
+    # The options name CPU settings, for the CPU only.  On a machine whose default
     # backend is a GPU, a program asked for on the CPU (`jax.default_device`) takes the plain
     # path too: compiled with XLA's defaults, correct, only slower to compile.
     return jax.default_backend() == "cpu"

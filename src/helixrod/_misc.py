@@ -8,6 +8,8 @@ never spoils a `vmap`-ped batch.
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -323,6 +325,54 @@ def lowest_eigenpair(A: ArrayLike, shift: ArrayLike) -> tuple[Array, Array, Arra
         return x - taus[i] * v * (v @ x)
 
     return count, lowest, x if n == 1 else jax.lax.fori_loop(0, n - 1, reflect, x)
+
+
+def chi2_survival(statistic: float, dof: float) -> float:
+    """$P(X \\ge$ `statistic`$)$ for $X \\sim \\chi^2$(`dof`): the regularised upper incomplete
+    gamma function $Q(a, x)$ at $a$ = `dof`/2, $x$ = `statistic`/2, in double precision on
+    the host, by its power series for $x < a + 1$ and Legendre's continued fraction
+    (modified Lentz) otherwise (Press et al., *Numerical Recipes*, 3rd ed., section 6.2).
+    For the reports, which are numpy on the host: `jax.scipy.stats.chi2.sf` compiled
+    ~0.3 s of XLA programs at a fit's first call.  Against mpmath (`tests/test_misc.py`):
+    within 2e-14 relative up to `dof` = 57, 2e-13 at 400, 1e-11 at 1e4 and 1e-9 at 2e6
+    (there the exponent of the prefactor $x^a e^{-x}/\\Gamma(a)$ is ~1e7)."""
+    if not dof > 0:
+        raise ValueError(f"chi2_survival: dof must be > 0, got {dof}")
+    a, x = 0.5 * float(dof), 0.5 * float(statistic)
+    if math.isnan(x):
+        return math.nan
+    if x <= 0.0:
+        return 1.0
+    if math.isinf(x):
+        return 0.0
+    prefactor = math.exp(-x + a * math.log(x) - math.lgamma(a))
+    eps, tiny = 1e-16, 1e-300
+    iterations = 10_000 + int(20 * math.sqrt(a))
+    if x < a + 1.0:
+        term = total = 1.0 / a
+        denominator = a
+        for _ in range(iterations):
+            denominator += 1.0
+            term *= x / denominator
+            total += term
+            if abs(term) < abs(total) * eps:
+                break
+        return max(0.0, 1.0 - total * prefactor)
+    b = x + 1.0 - a
+    c, d = 1.0 / tiny, 1.0 / b
+    fraction = d
+    for i in range(1, iterations):
+        an = -i * (i - a)
+        b += 2.0
+        d = an * d + b
+        d = tiny if abs(d) < tiny else d
+        c = b + an / c
+        c = tiny if abs(c) < tiny else c
+        d = 1.0 / d
+        fraction *= d * c
+        if abs(d * c - 1.0) < eps:
+            break
+    return prefactor * fraction
 
 
 def write_atomically(path, write, *, binary: bool = True) -> None:

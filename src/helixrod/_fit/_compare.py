@@ -29,10 +29,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.stats import chi2
 from jaxtyping import Array
 
 from .._compile import filter_jit
+from .._misc import chi2_survival
 from .._rod import rod_vector
 from .._status import RESULTS
 from ._helix_data import HelixData
@@ -281,7 +281,7 @@ def compare_models(
             statistic = max(2.0 * (fits[large].log_likelihood - fits[small].log_likelihood), 0.0)
             tests.append({
                 "smaller": small, "larger": large, "statistic": float(statistic), "df": int(df),
-                "p_value": float(chi2.sf(statistic, df)),
+                "p_value": chi2_survival(statistic, df),
             })
     candidates = [n for n in names if table[n]["ok"] and table[n]["identifiable"]]
     if candidates:

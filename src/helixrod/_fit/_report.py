@@ -8,8 +8,9 @@ from collections.abc import Mapping, Sequence
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.stats import chi2
 from jaxtyping import Array, ArrayLike, Float
+
+from .._misc import chi2_survival
 
 # A residual whose derivative exceeds this multiple of the typical (median) one is an exact
 # constraint in the error analysis.
@@ -172,7 +173,7 @@ def error_analysis(
     if not absolute_sigma:
         cov = cov * chi2_reduced
     elif dof > 0 and np.isfinite(cost):
-        p_value = float(chi2.sf(2 * cost, dof))
+        p_value = chi2_survival(2 * cost, dof)
         if p_value < POOR_FIT_P_VALUE:
             notes.append(
                 f"the fit does not describe the data within their sigmas: chi2 = {2 * cost:.4g} for {dof} degrees of "

@@ -7,12 +7,17 @@ largest absolute error of the frame and of the centreline at s = L.  Wall time: 
 same 18-dimensional system (n, m, D, x) with a numpy right-hand side.
 
     python benchmarks/bench_kirchhoff.py [--quick]
+    python benchmarks/bench_kirchhoff.py --saved-only [--one-core]   # the saved-point rows alone
+
+`--saved-only` writes results/bench_kirchhoff_saved[_one_core].json; `--one-core` pins the
+process to one core (XLA then runs no operation of a program concurrently with another).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import time
 
@@ -244,7 +249,21 @@ def planar_elastica():
 def main():
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--quick", action="store_true", help="fewer tolerances, solvers and batch members")
+    parser.add_argument("--saved-only", action="store_true", help="only the saved-point rows")
+    parser.add_argument("--one-core", action="store_true", help="pin the process to one core")
     args = parser.parse_args()
+    if args.one_core:
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+    if args.saved_only:
+        saves = {}
+        for problem in (problems()[1], planar_elastica()):
+            print(f"saved points ({problem['name']})")
+            saves[problem["name"]] = saved_points(problem, 201, 20 if args.quick else 50)
+        RESULTS.mkdir(exist_ok=True)
+        path = RESULTS / f"bench_kirchhoff_saved{'_one_core' if args.one_core else ''}.json"
+        path.write_text(json.dumps(dict(device=str(jax.devices()[0]), one_core=args.one_core, saved=saves), indent=1))
+        print(f"saved {path}")
+        return
     repeats = 2 if args.quick else 5
     tols = [1e-6, 1e-8, 1e-10, 1e-12] if args.quick else [1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12]
     solvers = {DEFAULT: hr.MuntheKaasRK(diffrax.Dopri8()), "CF4": hr.CommutatorFreeRK4(), "Tsit5": diffrax.Tsit5(),

@@ -202,6 +202,12 @@ def shooting_jacobian(y, args: ShootingArgs, options: BoundaryValueOptions, flow
         r, (pieces, _) = _residual_and_flows(z, args, options, flows_of=lambda w: _given_flows(w, no_theta, flows, jacobian))
         return r, pieces
 
+    return _jacobian_columns(residual, y)
+
+
+def _jacobian_columns(residual, y):
+    """The Jacobians of both outputs of `residual(y)` (an integration-free linearisation
+    through `_given_flows`), one column per entry of `y` on the last axis."""
     _, lin = jax.linearize(residual, y)
     return jax.vmap(lin, out_axes=-1)(jnp.eye(y.size, dtype=y.dtype))
 
@@ -263,8 +269,7 @@ def _implicit_jvp(primals, tangents, *, options):
         return r, pieces
 
     _, (b, t_pieces) = jax.jvp(lambda d: residual(y, d), (diff,), (t_diff,))
-    _, lin = jax.linearize(lambda z: residual(z, diff), y)
-    jac, pieces_jac = jax.vmap(lin, out_axes=-1)(jnp.eye(y.size, dtype=y.dtype))
+    jac, pieces_jac = _jacobian_columns(lambda z: residual(z, diff), y)
     good = jnp.all(jnp.isfinite(jac))
     safe = jnp.where(good, jac, jnp.eye(y.size, dtype=y.dtype))
     t_y = jnp.where(good, -jnp.linalg.solve(safe, b), jnp.nan)

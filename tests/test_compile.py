@@ -49,6 +49,28 @@ def test_no_options_is_the_plain_jit(monkeypatch):
     np.testing.assert_allclose(plain_filter(x), np.cos(np.asarray(x)) + 1.0, rtol=1e-15)
 
 
+def test_run_once_programs_take_their_own_options(monkeypatch):
+    # A program run once per call of its entry point (a fit's error analysis) is compiled at
+    # XLA's lowest optimisation level: its own options, at the top level only.
+    monkeypatch.setattr(jax, "default_backend", lambda: "cpu")
+    monkeypatch.setattr(_compile, "RUN_ONCE_OPTIONS", {"xla_helixrod_no_such_option": True})
+    once, usual = _compile.jit(lambda x: jnp.sin(x) * 2.0, run_once=True), _compile.jit(lambda x: jnp.sin(x) * 3.0)
+    x = jnp.linspace(0.0, 1.0, 5)
+    with pytest.raises(Exception, match="No such compile option"):
+        once(x)
+    np.testing.assert_allclose(usual(x), 3.0 * np.sin(np.asarray(x)), rtol=1e-15)
+    np.testing.assert_allclose(jax.jit(lambda y: once(y) + 1.0)(x), 2.0 * np.sin(np.asarray(x)) + 1.0, rtol=1e-15)
+
+
+def test_run_once_options_are_the_lowest_level_of_the_usual_ones():
+    expected = {**_compile.COMPILER_OPTIONS, "xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+    assert _compile.RUN_ONCE_OPTIONS == (expected if _compile.COMPILER_OPTIONS else {})
+    # XLA knows them: the program compiles and computes what the plain one does.
+    once = _compile.jit(lambda x: jnp.exp(x) - x, run_once=True)
+    x = jnp.linspace(-1.0, 1.0, 7)
+    np.testing.assert_allclose(once(x), np.exp(np.asarray(x)) - np.asarray(x), rtol=1e-15)
+
+
 # XLA's default compilation, whatever the test run's own settings (tests/conftest.py):
 # what a caller's `jax.jit` gets.
 XLA_DEFAULTS = {"xla_backend_optimization_level": 3, "xla_llvm_disable_expensive_passes": False}

@@ -83,6 +83,16 @@ def _compiler_options() -> dict[str, bool]:
 #: XLA options of every program helixrod compiles on its own (see the module docstring).
 COMPILER_OPTIONS: dict[str, bool] = _compiler_options()
 
+#: XLA options of a program run once per call of its entry point (`jit(..., run_once=True)`:
+#: a fit's error analysis): `COMPILER_OPTIONS` at XLA's lowest optimisation level (LLVM at
+#: level 0, without its expensive passes: what JAX's `jax_disable_most_optimizations` sets
+#: for every program), where compiling costs seconds and running milliseconds.  Like
+#: `COMPILER_OPTIONS`, on the releases measured only.
+RUN_ONCE_OPTIONS: dict[str, bool | int] = (
+    {**COMPILER_OPTIONS, "xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+    if COMPILER_OPTIONS else {}
+)
+
 #: Byte threshold below which XLA's CPU backend compiles a `while` loop into one kernel.
 SMALL_LOOP_BYTES = 1 << 20
 
@@ -121,9 +131,9 @@ def _compiles_for_cpu() -> bool:
     return jax.default_backend() == "cpu"
 
 
-def _with_options(plain, tuned):
-    """`tuned` (compiled with `COMPILER_OPTIONS`) at the top level on the CPU, else `plain`."""
-    if not COMPILER_OPTIONS:
+def _with_options(plain, tuned, options):
+    """`tuned` (compiled with `options`) at the top level on the CPU, else `plain`."""
+    if not options:
         return plain
 
     @functools.wraps(plain)
@@ -133,19 +143,21 @@ def _with_options(plain, tuned):
     return call
 
 
-def jit(fun=None, /, **kwargs):
-    """`jax.jit` with `COMPILER_OPTIONS` at the top level on the CPU; usable as `@jit`,
-    `@jit(static_argnames=...)` or `jit(fun, ...)`."""
+def jit(fun=None, /, *, run_once: bool = False, **kwargs):
+    """`jax.jit` with `COMPILER_OPTIONS` (with `run_once`, `RUN_ONCE_OPTIONS`) at the top
+    level on the CPU; usable as `@jit`, `@jit(static_argnames=...)` or `jit(fun, ...)`."""
     if fun is None:
-        return functools.partial(jit, **kwargs)
-    return _with_options(jax.jit(fun, **kwargs), jax.jit(fun, compiler_options=COMPILER_OPTIONS, **kwargs))
+        return functools.partial(jit, run_once=run_once, **kwargs)
+    options = RUN_ONCE_OPTIONS if run_once else COMPILER_OPTIONS
+    return _with_options(jax.jit(fun, **kwargs), jax.jit(fun, compiler_options=options, **kwargs), options)
 
 
 def filter_jit(fun=None, /, **kwargs):
     """`equinox.filter_jit` with `COMPILER_OPTIONS` at the top level; usable as `jit`."""
     if fun is None:
         return functools.partial(filter_jit, **kwargs)
-    return _with_options(eqx.filter_jit(fun, **kwargs), eqx.filter_jit(fun, compiler_options=COMPILER_OPTIONS, **kwargs))
+    tuned = eqx.filter_jit(fun, compiler_options=COMPILER_OPTIONS, **kwargs)
+    return _with_options(eqx.filter_jit(fun, **kwargs), tuned, COMPILER_OPTIONS)
 
 
 class StaticHalf:

@@ -391,17 +391,18 @@ def _physical_values(z, param: Parameterisation):
     return q, param.full(q)
 
 
-def jacobian_and_predictions(q, model: AbstractForwardModel, param: Parameterisation):
+def jacobian_and_predictions(q, model: AbstractForwardModel, param: Parameterisation, *, once: bool = False):
     """Jacobian of the normalised residuals with respect to the free physical parameters,
-    the residuals and the predictions, in one compiled program (`_split_jacobian_and_predictions`)."""
+    the residuals and the predictions, in one compiled program (`_split_jacobian_and_predictions`).
+    `once`: for an evaluation that no other in the fit shares (the error analysis of a fit
+    the solver did not drive through this program): the program compiled to run once
+    (`_compile.RUN_ONCE_OPTIONS`; a 60-helix fit's, on one core: 2.2 -> 0.8 s of XLA
+    compilation, 0.4 -> 0.5 ms a call)."""
     arrays, static = split_arrays((model, param))
-    return _split_jacobian_and_predictions(static, q, arrays)
+    return (_jacobian_and_predictions_once if once else _split_jacobian_and_predictions)(static, q, arrays)
 
 
-@functools.partial(jit, static_argnums=0)
-def _split_jacobian_and_predictions(static, q, arrays):
-    """`jacobian_and_predictions` with `(model, param)` given as `split_arrays` halves, split
-    once by a caller that evaluates it at many points `q` (a fit's steps)."""
+def _jacobian_and_predictions_of(static, q, arrays):
     model, param = static.combine(arrays)
 
     def residuals(qq):
@@ -409,6 +410,12 @@ def _split_jacobian_and_predictions(static, q, arrays):
         return r, (r, predicted)
 
     return jacobian_forward(residuals, q, has_aux=True, through_loops=model.forward_mode_only)
+
+
+#: `jacobian_and_predictions` with `(model, param)` given as `split_arrays` halves, split
+#: once by a caller that evaluates it at many points `q` (a fit's steps).
+_split_jacobian_and_predictions = jit(_jacobian_and_predictions_of, static_argnums=0)
+_jacobian_and_predictions_once = jit(_jacobian_and_predictions_of, static_argnums=0, run_once=True)
 
 
 def _solver(solver, rtol, atol, learning_rate):
@@ -576,13 +583,15 @@ def fit_stiffness(
     key = jax.random.key(0) if key is None else key
     n_starts = int(n_starts)
     with progress_bar("fit_stiffness: starts", n_starts + 1, progress, owner="fit_stiffness") as report:
-        if init is None and model.scan_start:
+        scanned = init is None and model.scan_start
+        if scanned:
             report.describe("fit_stiffness: start scan")
             p0 = _scanned_start(p0, model, param)
             param = parameterisation(p0)
             report.describe("fit_stiffness: starts")
         z0s = param.starts(param.internal(p0), n_starts, key)
-        if model.forward_mode_only and steppable(solver):
+        stepwise = model.forward_mode_only and steppable(solver)
+        if stepwise:
             solved = _stepwise_multistart(jnp.asarray(z0s), model, param, solver, int(max_steps), report)
         elif adaptive:
             solved = _adaptive_multistart(jnp.asarray(z0s), model, param, solver, int(max_steps), batching, report)
@@ -593,7 +602,9 @@ def fit_stiffness(
         else:  # one call: nothing is slower for want of a bar
             solved = _multistart(jnp.asarray(z0s), model, param, solver, int(max_steps), batching)
         report.describe("fit_stiffness: error analysis")
-        fit = _best_start(solved, model, param, solver, method, int(max_steps), absolute_sigma, weak_threshold)
+        # The model's Jacobian program: the one the start scan or the steps compiled, else one to run once.
+        once = not (scanned or stepwise)
+        fit = _best_start(solved, model, param, solver, method, int(max_steps), absolute_sigma, weak_threshold, once=once)
         report.advance(1)
     return raise_if_failed(fit, fit.result, "fit_stiffness: the best start did not converge") if throw else fit
 
@@ -704,17 +715,17 @@ def _agreement(p_all, cost, model, param, results):
     return best, len(members), p_best
 
 
-def _best_start(solved, model, param, solver, method, max_steps, absolute_sigma, weak_threshold):
+def _best_start(solved, model, param, solver, method, max_steps, absolute_sigma, weak_threshold, *, once):
     """The `StiffnessFit` of the best of the solved starts (what `_multistart` returns):
     canonical in its symmetry orbit, with the starts that agree with it counted and the
-    error analysis at it."""
+    error analysis at it (`once`: by `jacobian_and_predictions` compiled to run once)."""
     _, cost, results, steps, p_all, q_all = solved
     cost, steps, p_all, q_all = (np.asarray(a) for a in (cost, steps, p_all, q_all))
     frame_observed = model.frame_observed
     # Starts that reached the best minimum up to the symmetries.
     best, agree, p_best = _agreement(p_all, cost, model, param, results)
     q = np.concatenate([[p_best[PARAMETER_NAMES.index(n)] for n in param.free], q_all[best, len(param.free):]])
-    J, (r, predicted) = jacobian_and_predictions(jnp.asarray(q), model, param)
+    J, (r, predicted) = jacobian_and_predictions(jnp.asarray(q), model, param, once=once)
     observed = model.observed_residuals()
     if observed is not None:
         J, r = J[observed], r[observed]

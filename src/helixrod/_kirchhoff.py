@@ -298,8 +298,9 @@ def solve_static(
             f"solve_static: n0, m0 need shape (3,) and length a scalar, got {n0.shape}, "
             f"{m0.shape}, {length.shape}; use jax.vmap for batches"
         )
-    frame0 = jnp.eye(3, dtype=dtype) if frame0 is None else jnp.asarray(frame0, dtype)
-    x0 = jnp.zeros(3, dtype) if x0 is None else jnp.asarray(x0, dtype)
+    # The defaults from NumPy: jnp.eye and jnp.zeros would compile eagerly (~0.1 s together).
+    frame0 = jnp.asarray(np.eye(3) if frame0 is None else frame0, dtype)
+    x0 = jnp.asarray(np.zeros(3) if x0 is None else x0, dtype)
     if frame0.shape != (3, 3) or x0.shape != (3,):
         raise ValueError(f"solve_static: frame0 needs shape (3, 3) and x0 (3,), got {frame0.shape}, {x0.shape}")
     check_rotation(frame0, "solve_static")

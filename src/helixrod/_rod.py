@@ -27,6 +27,8 @@ def _positive_definite(K1, K2, K3, K13, K23, uhat):
     definite iff $K_1 > 0$, $K_2 > 0$ and $K_3 - K_{13}^2/K_1 - K_{23}^2/K_2 > 0$.
     """
     xp = np if is_concrete(K1, K2, K3, K13, K23, uhat) else jnp
+    if xp is np:  # NumPy's operators: JAX's would compile each operation eagerly (~20 ms each)
+        K1, K2, K3, K13, K23, uhat = (np.asarray(a) for a in (K1, K2, K3, K13, K23, uhat))
     finite = (
         xp.isfinite(K1)
         & xp.isfinite(K2)

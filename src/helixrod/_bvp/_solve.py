@@ -160,7 +160,7 @@ def ode_tolerances(options: BoundaryValueOptions, dtype):
     return jnp.concatenate([ode_tol, jacobian_tolerance(ode_tol)])
 
 
-@jit(static_argnames="guess_kind")
+@jit(static_argnames="guess_kind", run_once=True)
 def as_warm_start(rod, length, start: Clamped, end: EndCondition, guess, options: BoundaryValueOptions, guess_kind="helix"):
     """`guess` (as `solve`) as a `WarmStart` (`warm_start_of`), in a program of its own: an
     eager caller passes every guess to `solve` in this one form, so the large solve program

@@ -12,7 +12,7 @@ from jaxtyping import Array
 from .._compile import filter_jit
 from .._progress import ProgressArgument, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import PARAMETER_NAMES, rod_vector
-from .._status import RESULTS, raise_if_failed
+from .._status import RESULTS, raise_if_failed, succeeded
 from ._pipeline import StiffnessFit, minimise
 from ._symmetry import closest_in_orbit
 
@@ -97,8 +97,8 @@ def bootstrap(
         else:  # one call: nothing is slower for want of a bar
             p, q, results = _refits(z0, models, param, problem.solver, problem.max_steps)
     p, q = np.array(p), np.array(q)
-    ok = np.asarray(results == RESULTS.successful)
-    p = np.stack([closest_in_orbit(pi, p_fit, param, model.frame_observed) for pi in p])
+    ok = succeeded(results)
+    p = closest_in_orbit(p, p_fit, param, model.frame_observed)
     p[~ok] = np.nan
     q[~ok] = np.nan
     own = {name: q[:, len(param.free) + i] for i, name in enumerate(param.extra_free)}

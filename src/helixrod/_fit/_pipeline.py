@@ -94,7 +94,7 @@ class StiffnessFit(eqx.Module):
     @property
     def ok(self) -> bool:
         """Whether the best start converged (to a finite cost)."""
-        return bool(self.result == RESULTS.successful)
+        return bool(succeeded(self.result))
 
     @property
     def message(self) -> str:
@@ -673,7 +673,7 @@ def _adaptive_multistart(z0s, model, param, solver, max_steps: int, batching: st
         if screen < max_steps:  # no two starts agreed within the screening budget: all with the full one
             return _multistart(z0s, model, param, solver, max_steps, batching)
         return solved
-    if screen < max_steps and not bool(jax.tree.map(lambda v: v[best], solved[2]) == RESULTS.successful):
+    if screen < max_steps and not succeeded(solved[2])[best]:
         z, cost, result, steps, p, q = _multistart(jnp.asarray(solved[0][best:best + 1]), model, param, solver, max_steps, batching)
         # LM accepts steps at round-off, so the same minimum may come back a little higher.
         if bool(np.isfinite(cost[0])) and cost[0] <= solved[1][best] + 1e-6 * (1 + solved[1][best]):
@@ -694,8 +694,8 @@ def _agreement(p_all, cost, model, param, results):
     minimum up to the symmetries: (best, count, p_best).  Of the starts at the best minimum
     a converged one is preferred: the one of lowest cost may have been cut short while its
     steps were at round-off."""
-    cost = np.where(np.isfinite(cost), cost, np.inf)
-    converged = np.asarray(results == RESULTS.successful)
+    p_all, cost = np.asarray(p_all, float), np.where(np.isfinite(cost), cost, np.inf)
+    converged = succeeded(results)
     best = int(np.argmin(cost))
     frame_observed = model.frame_observed
     symmetric = bool(symmetries(param, frame_observed))  # else every orbit is the point itself
@@ -706,8 +706,8 @@ def _agreement(p_all, cost, model, param, results):
         if not np.isfinite(cost[best]):
             return p_best, []
         near = np.flatnonzero(np.abs(cost - cost[best]) <= 1e-6 * (1 + cost[best]))
-        closest = (lambda p: closest_in_orbit(p, p_best, param, frame_observed)) if symmetric else (lambda p: p)  # noqa: E731
-        return p_best, [i for i in near if np.max(np.abs(closest(p_all[i]) - p_best) / scale) <= 1e-4]
+        p_near = closest_in_orbit(p_all[near], p_best, param, frame_observed) if symmetric else p_all[near]
+        return p_best, [int(i) for i in near[np.max(np.abs(p_near - p_best) / scale, axis=-1) <= 1e-4]]
 
     p_best, members = at_minimum_of(best)
     done = [i for i in members if converged[i]]

@@ -127,6 +127,11 @@ def canonical(p, param: Parameterisation, frame_observed: bool) -> np.ndarray:
 
 
 def closest_in_orbit(p, target, param: Parameterisation, frame_observed: bool) -> np.ndarray:
-    """The member of the symmetry orbit of p nearest to `target` (scaled distance)."""
+    """The member of the symmetry orbit of p nearest to `target` (scaled distance; the first
+    of equally near ones, the identity first).  `p` is one full parameter vector or a stack
+    of them on leading axes (one orbit computation for all: a fit compares every start with
+    the best this way)."""
     scale = param.scales(PARAMETER_NAMES)
-    return min(orbit(p, param, frame_observed), key=lambda q: float(np.sum(((q - target) / scale) ** 2)))
+    images = np.stack(orbit(p, param, frame_observed))
+    nearest = np.argmin(np.sum(((images - np.asarray(target, float)) / scale) ** 2, axis=-1), axis=0)
+    return np.take_along_axis(images, nearest[None, ..., None], axis=0)[0]

@@ -9,7 +9,6 @@ symmetry orbit -> Jacobian and predictions at it -> error analysis -> `Stiffness
 
 from __future__ import annotations
 
-import functools
 import json
 from collections.abc import Mapping
 from pathlib import Path

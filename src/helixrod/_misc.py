@@ -16,6 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
+from ._compile import jit
+
 
 def is_concrete(*trees) -> bool:
     """True when no leaf of `trees` is a tracer (the values can be read in Python)."""
@@ -421,3 +423,11 @@ def newton_iterations(residual, x0, steps: int, project=None, tolerance=None):
 
     start = (jnp.zeros((), jnp.int32), x0, jnp.full((), jnp.inf, jnp.result_type(x0)))
     return jax.lax.while_loop(unfinished, advance, start)[1]
+
+
+#: `jax.random.normal(key, shape)` and `jax.random.randint(key, shape, low, high)` (shape
+#: static) compiled to run once: called eagerly, JAX compiles them with XLA's full
+#: optimisation (the normal draws of a fit's starts: 0.24 -> 0.08 s on one core; the same
+#: draws).  For the draws helixrod makes once per call (starts, replicates, synthetic data).
+random_normal = jit(jax.random.normal, static_argnums=1, run_once=True)
+random_integers = jit(jax.random.randint, static_argnums=1, run_once=True)

@@ -28,7 +28,7 @@ from .._bvp import (
     solve_boundary_value,
     stack_ends,
 )
-from .._misc import check_integer, column, finite_scalar, float_dtype
+from .._misc import check_integer, column, finite_scalar, float_dtype, random_normal
 
 
 class EndResponseData(eqx.Module):
@@ -254,7 +254,7 @@ def synthetic_end_response_data(
     if zero:
         sig = np.sqrt(np.mean(exact**2, axis=0))
     else:
-        exact = exact + sig * np.asarray(jax.random.normal(key, exact.shape))
+        exact = exact + sig * np.asarray(random_normal(key, exact.shape))
     values[:, response_index[0]] = exact[:, 0]
     values[:, response_index[1]] = exact[:, 1]
     sigmas = {AXIAL_OBSERVABLES[i] + "_sigma": sig[j] for j, i in enumerate(response_index)}
@@ -288,5 +288,5 @@ def synthetic_shape_data(
     points = np.stack(points)
     sigma = noise if noise > 0 else 1e-3 * float(length)
     if noise > 0:
-        points = points + noise * np.asarray(jax.random.normal(key, points.shape))
+        points = points + noise * np.asarray(random_normal(key, points.shape))
     return ShapeData(length, s, points, ends, sigma=sigma, start=start, segments=segments)

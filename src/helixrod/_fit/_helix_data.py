@@ -27,7 +27,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._equilibria import helix_equilibria
-from .._misc import is_concrete, write_atomically
+from .._misc import is_concrete, random_normal, write_atomically
 from .._rod import Rod
 from ._csv import drop_unknown_columns
 from ._units import ANGLE_UNITS, DIMENSIONLESS_UNITS, FORCE_UNITS, INVERSE_LENGTH_UNITS, TORQUE_UNITS
@@ -487,8 +487,8 @@ def synthetic_helix_data(
     else:
         if sigma_f <= 0 or sigma_m <= 0 or not (math.isfinite(sigma_f) and math.isfinite(sigma_m)):
             raise ValueError(f"noise must be >= 0 and finite, got {noise}")
-        F_obs = F + sigma_f * np.asarray(jax.random.normal(key_f, F.shape))
-        M_obs = M + sigma_m * np.asarray(jax.random.normal(key_m, M.shape))
+        F_obs = F + sigma_f * np.asarray(random_normal(key_f, F.shape))
+        M_obs = M + sigma_m * np.asarray(random_normal(key_m, M.shape))
     return HelixData(
         F_obs if "force" in observe else None, M_obs if "moment" in observe else None, np.asarray(kappa),
         np.asarray(tau), sigma_f, sigma_m, register=phi, units=units,

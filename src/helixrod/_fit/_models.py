@@ -41,6 +41,7 @@ from jaxtyping import Array
 from .._bvp import AXIAL_CONTROLS, AXIAL_OBSERVABLES, BoundaryValueOptions, Clamped, EndCondition
 from .._bvp import axial_response, solve_boundary_value
 from .._equilibria import helix_equilibria
+from .._misc import random_integers, random_normal
 from ._finite_data import EndResponseData, ShapeData
 from ._helix_data import HelixData
 from ._parameters import ModelParameter
@@ -264,12 +265,12 @@ class HelixModel(AbstractForwardModel):
     def replicates(self, kind, n, key, predicted):
         size = self.kappa.shape[0]
         if kind == "cases":  # every array of the model is per point
-            idx = jax.random.randint(key, (n, size), 0, size)
+            idx = random_integers(key, (n, size), 0, size)
             return jax.tree.map(lambda a: a[idx], self)
         batch = jax.tree.map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), self)
         kf, km = jax.random.split(key)
-        force = predicted["force"][None] + self.force_sigma[None] * jax.random.normal(kf, (n, size))
-        moment = predicted["moment"][None] + self.moment_sigma[None] * jax.random.normal(km, (n, size))
+        force = predicted["force"][None] + self.force_sigma[None] * random_normal(kf, (n, size))
+        moment = predicted["moment"][None] + self.moment_sigma[None] * random_normal(km, (n, size))
         return eqx.tree_at(lambda m: (m.force, m.moment), batch, (force, moment))
 
 

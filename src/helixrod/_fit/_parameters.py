@@ -14,13 +14,11 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._compile import jit
-from .._misc import float_dtype
+from .._misc import float_dtype, random_normal
 from .._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
 
 STIFFNESS_NAMES = PARAMETER_NAMES[:5]
@@ -203,14 +201,9 @@ class Parameterisation(eqx.Module):
         """`n` starts: `z_base`, then random perturbations suited to each coordinate
         (log-normal stiffnesses, normal couplings and twists)."""
         spread = np.array([{"K1": 0.7, "K2": 0.7, "K3": 0.5}.get(name, 0.5) for name in self.free] + [0.2] * len(self.extra_free))
-        noise = np.array(_standard_normal(key, (n, len(self.names))))
+        noise = np.array(random_normal(key, (n, len(self.names))))
         noise[0] = 0.0
         return z_base[None, :] + spread * noise
-
-
-#: `jax.random.normal` as a program run once per fit (its eager call compiles it with XLA's
-#: full optimisation: 0.24 s against 0.08 s on one core, the same draws).
-_standard_normal = jit(jax.random.normal, static_argnums=1, run_once=True)
 
 
 def _disc(w):

@@ -26,6 +26,7 @@ import numpy as np
 from jaxtyping import Array
 
 from .._dna import helix_from_bdna, kT as thermal_energy
+from .._misc import random_integers, random_normal
 from .._status import RESULTS
 from .._tweezer import PLECTONEME_TWIST_PERSISTENCE, filament_and_rise, response_point
 from ._models import AbstractForwardModel, forward_model
@@ -164,7 +165,7 @@ class TweezerModel(AbstractForwardModel):
         if kind == "cases":
             if self.torque_points.shape[0]:
                 raise ValueError("bootstrap kind='cases' of tweezer data with measured torques is not supported; use 'parametric'")
-            idx = jax.random.randint(key, (n, size), 0, size)
+            idx = random_integers(key, (n, size), 0, size)
             batch = jax.tree.map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), self)
             return eqx.tree_at(
                 lambda m: [getattr(m, f) for f in per_point if getattr(self, f) is not None],
@@ -173,8 +174,8 @@ class TweezerModel(AbstractForwardModel):
             )
         batch = jax.tree.map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), self)
         ke, kt = jax.random.split(key)
-        extension = predicted["extension"][None] + self.extension_sigma[None] * jax.random.normal(ke, (n, size))
-        torque = predicted["torque"][self.torque_points][None] + self.measured_torque_sigma[None] * jax.random.normal(
+        extension = predicted["extension"][None] + self.extension_sigma[None] * random_normal(ke, (n, size))
+        torque = predicted["torque"][self.torque_points][None] + self.measured_torque_sigma[None] * random_normal(
             kt, (n, self.torque_points.shape[0])
         )
         return eqx.tree_at(lambda m: (m.extension, m.measured_torque), batch, (extension, torque))

@@ -27,7 +27,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._equilibria import helix_equilibria
-from .._misc import is_concrete, random_normal, write_atomically
+from .._misc import is_concrete, random_normal, random_split, write_atomically
 from .._rod import Rod
 from ._csv import drop_unknown_columns
 from ._units import ANGLE_UNITS, DIMENSIONLESS_UNITS, FORCE_UNITS, INVERSE_LENGTH_UNITS, TORQUE_UNITS
@@ -460,7 +460,7 @@ def synthetic_helix_data(
     tau = jnp.asarray(tau, jnp.result_type(float))
     kappa, tau = jnp.broadcast_arrays(jnp.atleast_1d(kappa), jnp.atleast_1d(tau))
     eq = helix_equilibria(rod, kappa, tau)
-    key_branch, key_f, key_m = jax.random.split(key, 3)
+    key_branch, key_f, key_m = random_split(key, 3)
     if branch == "min-energy":
         slot = jnp.zeros(kappa.shape, int)
     elif branch == "random":

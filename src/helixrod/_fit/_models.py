@@ -41,7 +41,7 @@ from jaxtyping import Array
 from .._bvp import AXIAL_CONTROLS, AXIAL_OBSERVABLES, BoundaryValueOptions, Clamped, EndCondition
 from .._bvp import axial_response, solve_boundary_value
 from .._equilibria import helix_equilibria
-from .._misc import random_integers, random_normal
+from .._misc import random_integers, random_normal, random_split
 from ._finite_data import EndResponseData, ShapeData
 from ._helix_data import HelixData
 from ._parameters import ModelParameter
@@ -268,7 +268,7 @@ class HelixModel(AbstractForwardModel):
             idx = random_integers(key, (n, size), 0, size)
             return jax.tree.map(lambda a: a[idx], self)
         batch = jax.tree.map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), self)
-        kf, km = jax.random.split(key)
+        kf, km = random_split(key, 2)
         force = predicted["force"][None] + self.force_sigma[None] * random_normal(kf, (n, size))
         moment = predicted["moment"][None] + self.moment_sigma[None] * random_normal(km, (n, size))
         return eqx.tree_at(lambda m: (m.force, m.moment), batch, (force, moment))

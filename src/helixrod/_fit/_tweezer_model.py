@@ -26,7 +26,7 @@ import numpy as np
 from jaxtyping import Array
 
 from .._dna import helix_from_bdna, kT as thermal_energy
-from .._misc import random_integers, random_normal
+from .._misc import random_integers, random_normal, random_split
 from .._status import RESULTS
 from .._tweezer import PLECTONEME_TWIST_PERSISTENCE, filament_and_rise, response_point
 from ._models import AbstractForwardModel, forward_model
@@ -173,7 +173,7 @@ class TweezerModel(AbstractForwardModel):
                 [getattr(self, f)[idx] for f in per_point if getattr(self, f) is not None],
             )
         batch = jax.tree.map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), self)
-        ke, kt = jax.random.split(key)
+        ke, kt = random_split(key, 2)
         extension = predicted["extension"][None] + self.extension_sigma[None] * random_normal(ke, (n, size))
         torque = predicted["torque"][self.torque_points][None] + self.measured_torque_sigma[None] * random_normal(
             kt, (n, self.torque_points.shape[0])

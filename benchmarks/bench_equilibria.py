@@ -32,7 +32,12 @@ import sys
 import time
 from pathlib import Path
 
-import jax
+if "--one-core" in sys.argv:
+    # Before numba starts its threads: one thread in every thread that calls it (helixrod's
+    # register kernel runs on XLA's threads, which numba.set_num_threads does not reach).
+    os.environ["NUMBA_NUM_THREADS"] = "1"
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402

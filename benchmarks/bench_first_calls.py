@@ -93,6 +93,7 @@ def run_case(name: str, cache: str, default_xla: bool, one_core: bool, low_opt: 
     command = [sys.executable, "-c", RUNNER.format(setup=CASES[name]), cache]
     if one_core:
         command = ["taskset", "-c", "1"] + command
+        env["NUMBA_NUM_THREADS"] = "1"  # the register kernel's threads, on the one core
     out = subprocess.run(command, env=env, capture_output=True, text=True, check=False)
     if out.returncode != 0:
         raise RuntimeError(f"{name} failed:\n{out.stderr[-2000:]}")

@@ -1,5 +1,7 @@
 """Register roots against an independent reference: dense scan + mpmath bisection."""
 
+import os
+
 import jax
 import jax.numpy as jnp
 import mpmath
@@ -181,3 +183,102 @@ def test_angle_against_mpmath(rng):
     ref = np.array([float(mpmath.atan2(y, x) % (2 * mpmath.pi)) for x, y in zip(c, s)])
     assert np.all((phi >= 0) & (phi < 2 * np.pi))
     assert np.max(angular_distance(phi, ref)) <= 9e-16
+
+
+def astroid_points(rng, n, offset):
+    """Coefficients (A, B, C) = (1, 2 cos^3 t, 2 sin^3 t) (1 + offset): on the astroid,
+    where the inner pair is born, moved inside (offset < 0) or outside by `offset`."""
+    t = rng.uniform(0, 2 * np.pi, n)
+    return np.ones(n), 2 * np.cos(t) ** 3 * (1 + offset), 2 * np.sin(t) ** 3 * (1 + offset)
+
+
+def test_cpu_kernel_matches_the_xla_program(rng):
+    """On a CPU with numba (the test extra), `register_roots` runs the compiled register
+    kernel; it solves what `_roots`' XLA program solves (used on accelerators, in float32
+    and without numba): the same slots, flags and registers to rounding, on random
+    coefficients over 16 decades of ratios, exact zeros and the continuum, negative A,
+    non-finite inputs, both sides of the astroid near it, and the cusps."""
+    from helixrod import _roots
+
+    kernel = _roots.cpu_kernel()
+    assert kernel is not None, "numba (in the test extra) and HELIXROD_REGISTER_KERNEL unset"
+    n = 20000
+    A, B, C = (rng.normal(size=n) * np.exp(rng.uniform(-18, 18, n)) for _ in range(3))
+    B[:500], C[500:1000], A[1000:1200] = 0.0, 0.0, 0.0
+    A[1200:1300] = B[1200:1300] = C[1200:1300] = 0.0
+    A[1300:1310], B[1310:1320], C[1320:1330] = np.nan, np.inf, -np.inf
+    for lo, offset in ((2000, -1e-6), (3000, 1e-6), (4000, -1e-3), (5000, 1e-3)):
+        A[lo:lo + 1000], B[lo:lo + 1000], C[lo:lo + 1000] = astroid_points(rng, 1000, offset)
+    cusps = slice(6000, 6400)  # (B, C) near (+-2, 0) and (0, +-2): a nearly triple root
+    A[cusps] = 1.0
+    B[cusps] = rng.choice([-2.0, 2.0], 400) * (1 - 10.0 ** rng.uniform(-12, -3, 400))
+    C[cusps] = rng.normal(size=400) * 1e-6
+    B[6200:6400], C[6200:6400] = C[6200:6400], B[6200:6400]
+    A[6400:8000] *= -np.sign(A[6400:8000])
+
+    ours = [np.asarray(x) for x in jax.jit(kernel.solve)(A, B, C)]
+    xla = [np.asarray(x) for x in jax.jit(_roots._solve_in_xla)(A, B, C)]
+    cos_k, sin_k, valid_k, continuum_k, tangent_k = ours
+    _, cos_x, sin_x, valid_x, continuum_x, tangent_x = xla
+    np.testing.assert_array_equal(valid_k, valid_x)
+    np.testing.assert_array_equal(continuum_k, continuum_x)
+    np.testing.assert_array_equal(tangent_k, tangent_x)
+    assert not valid_k[1300:1330].any() and continuum_k[1200:1300].all()
+    assert (valid_k[2000:3000, 2:].all() and not valid_k[3000:4000, 2:].any())
+    # Registers next to a tangency (a nearly double root, 1e-3 apart at offset 1e-6) are
+    # conditioned like eps / 1e-3, next to a cusp (a nearly triple root) like eps^(1/3).
+    tol = np.full(n, 1e-13)
+    tol[2000:4000] = 1e-11
+    tol[cusps] = 1e-8
+    for ours_, theirs in ((cos_k, cos_x), (sin_k, sin_x)):
+        assert np.all(np.isfinite(ours_))
+        err = np.where(valid_k, np.abs(ours_ - theirs), 0.0).max(axis=1)
+        assert np.all(err <= tol), (np.argmax(err / tol), err.max())
+    # Every register is a root of f, by either program.
+    phi = np.arctan2(sin_k, cos_k)
+    with np.errstate(invalid="ignore"):  # the non-finite points, masked below
+        f = A[:, None] * np.sin(2 * phi) + B[:, None] * np.sin(phi) + C[:, None] * np.cos(phi)
+    scale = np.maximum.reduce([np.abs(A), np.abs(B), np.abs(C)])[:, None]
+    ok = valid_k & ~continuum_k[:, None]
+    assert np.max(np.abs(np.where(ok, f / np.where(ok, scale, 1.0), 0.0))) < 1e-13
+
+
+def test_register_kernel_can_be_turned_off(tmp_path):
+    """`HELIXROD_REGISTER_KERNEL=0` keeps the registers in XLA (read at import): the
+    same equilibria as with the kernel."""
+    import subprocess
+    import sys
+
+    code = (
+        "import jax; jax.config.update('jax_enable_x64', True)\n"
+        "import numpy as np, helixrod as hr\n"
+        "from helixrod import _roots\n"
+        "assert _roots.cpu_kernel() is None\n"
+        "rod = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))\n"
+        "eq = hr.helix_equilibria(rod, np.linspace(0.1, 3, 50)[:, None], np.linspace(-3, 3, 40))\n"
+        f"np.save({str(tmp_path / 'phi.npy')!r}, np.asarray(eq.phi))\n"
+    )
+    env = dict(os.environ, HELIXROD_REGISTER_KERNEL="0")
+    subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=600)
+    import helixrod as hr
+
+    rod = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
+    eq = hr.helix_equilibria(rod, np.linspace(0.1, 3, 50)[:, None], np.linspace(-3, 3, 40))
+    xla = np.load(tmp_path / "phi.npy")
+    np.testing.assert_array_equal(np.isnan(xla), np.isnan(np.asarray(eq.phi)))
+    assert np.nanmax(angular_distance(xla, np.asarray(eq.phi))) < 1e-13
+
+
+def test_register_kernel_is_found_from_inside_a_trace():
+    """The kernel's first use may come while JAX traces a caller's program (the check it
+    runs then must not be staged into that program): found, no warning."""
+    import warnings
+
+    from helixrod import _roots
+
+    _roots.cpu_kernel.cache_clear()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        phi = jax.jit(lambda a: register_roots(a, 0.3, -0.4)[0])(1.0)
+    assert _roots.cpu_kernel() is not None
+    assert np.isfinite(np.asarray(phi)[:2]).all()

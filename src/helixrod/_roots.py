@@ -26,7 +26,7 @@ On each of these branches $\\psi$ is increasing and concave left of its root (Mo
 Sorensen, SIAM J. Sci. Stat. Comput. 4 (1983) 553, for the outer branches; checked
 numerically for the inner ones), and explicit lower bounds of every root are known.  So:
 
-* the **fast path** takes `_FAST_ITERATIONS` Halley steps on $\\psi = 1$ (cubic convergence;
+* the **fast path** takes `FAST_ITERATIONS` Halley steps on $\\psi = 1$ (cubic convergence;
   one square root and one division a step) from those bounds, and decides the inner pair
   by the sign of the astroid polynomial;
 * the points it leaves unconverged or undecided -- a few in $10^4$ of random coefficients:
@@ -36,16 +36,23 @@ numerically for the inner ones), and explicit lower bounds of every root are kno
   converge, then one Newton step on $f(\\varphi)$ itself (a rotation of $(x, y)$).
 
 Elementwise arithmetic only (no eigenvalues, no data-dependent control flow in the fast
-path), unchanged on a GPU.  Exact zeros of $B$ or $C$ (the common uncoupled rods) have
+path), unchanged on a GPU.  On a CPU in float64 the same algorithm runs as one compiled loop
+over the points when numba is installed (`_register_kernel`, called from XLA through its
+FFI; `cpu_kernel`): 2-5x faster than XLA's elementwise passes and compiled once per
+installation instead of at every first call; this module's XLA program is the reference
+it is tested against, and the path everywhere else.  Exact zeros of $B$ or $C$ (the common uncoupled rods) have
 closed forms (`_factorable`).  Registers closer than about $10^{-7}$ (relative to the
 coefficients) to a tangency cannot be told apart in float64: where the astroid test is
-within `_TANGENT_TOL` of zero one *tangent* register -- the separator itself, the extremum
+within `TANGENT_TOL` of zero one *tangent* register -- the separator itself, the extremum
 of $f$ -- is returned instead of the pair.
 """
 
 from __future__ import annotations
 
 import functools
+import importlib.util
+import os
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -61,8 +68,8 @@ NUM_SLOTS = 4
 # decades) and on kappa-tau grids, about 7 points in 10^4 are left to the careful path
 # (tests/test_roots.py measures it).  Newton steps of the careful path at most: at an
 # exact cusp the root is triple and Newton converges linearly (ratio 2/3).
-_FAST_ITERATIONS = 4
-_MORE_ITERATIONS = 128
+FAST_ITERATIONS = 4
+MORE_ITERATIONS = 128
 # Points re-solved together by the careful path (a while loop takes as many batches as
 # there are unconverged points), on a CPU and on an accelerator (where each batch is a
 # round of kernel launches).
@@ -72,17 +79,17 @@ _INNER_BATCH = 1024
 _ACCELERATOR_FALLBACK_BATCH = 16384
 # Convergence, relative to nu.  A step at round-off; or, in the asymptotic regime, a
 # last step small enough that the error it leaves -- about last^4 / before^3 for Halley,
-# last^3 / before^2 for Newton -- is below _LEFT_TOL.
-_ROUNDOFF_TOL = 1e-14
-_ASYMPTOTIC_TOL = 1e-4
-_LEFT_TOL = 1e-17
+# last^3 / before^2 for Newton -- is below LEFT_TOL.
+ROUNDOFF_TOL = 1e-14
+ASYMPTOTIC_TOL = 1e-4
+LEFT_TOL = 1e-17
 # Astroid test |4A^2 - (|B|^(2/3) + |C|^(2/3))^3| below this times 4A^2 -> tangent pair.
-_TANGENT_TOL = 64 * 2.220446049250313e-16
+TANGENT_TOL = 64 * 2.220446049250313e-16
 # Coefficients (scaled to max 1) below this are exact zeros: closed forms, error < 1e-100.
-_TINY = 1e-100
+TINY = 1e-100
 # The careful path's final rotation is skipped if Newton on f(phi) wants to move further
 # than this (then it is not at a simple root: a tangent register).
-_POLISH_LIMIT = 1e-4
+POLISH_LIMIT = 1e-4
 
 # Per-slot layout of the four secular problems: which coefficient is Q (the pole of the
 # root), the branch (e = -1 on the inner pair), and how (x, y) are read from (Q/nu, P/d).
@@ -103,7 +110,7 @@ def _converged(nu, last, before, order):
     from its last two steps."""
     last, before = jnp.abs(last) / nu, jnp.abs(before) / nu
     left = last**order / before ** (order - 1)
-    return (last <= _ROUNDOFF_TOL) | ((last <= _ASYMPTOTIC_TOL) & (left <= _LEFT_TOL))
+    return (last <= ROUNDOFF_TOL) | ((last <= ASYMPTOTIC_TOL) & (left <= LEFT_TOL))
 
 
 def _secular_solve(nu, aa, Q2, P2, e, needed, careful):
@@ -115,8 +122,8 @@ def _secular_solve(nu, aa, Q2, P2, e, needed, careful):
     The slots are separate arrays, not a trailing axis: XLA's CPU loops then run over
     contiguous points with no broadcast index arithmetic, ~3x faster on the fast path.
 
-    Fast path: `_FAST_ITERATIONS` Halley steps.  Careful path: Newton steps until every
-    `needed` slot has converged (at most `_MORE_ITERATIONS`).  Each step ends with its
+    Fast path: `FAST_ITERATIONS` Halley steps.  Careful path: Newton steps until every
+    `needed` slot has converged (at most `MORE_ITERATIONS`).  Each step ends with its
     division, so that XLA keeps nu itself in memory between steps: written as nu + step,
     the sum nu_0 + step_1 + ... + step_k is refolded into every later step, each then
     reading all earlier steps.  Returns nu and whether each slot converged (tuples)."""
@@ -147,7 +154,7 @@ def _secular_solve(nu, aa, Q2, P2, e, needed, careful):
         roots, done = [], []
         for nu_s, Q2_s, P2_s, e_s in zip(nu, Q2, P2, e):
             history = [nu_s]
-            for _ in range(_FAST_ITERATIONS):
+            for _ in range(FAST_ITERATIONS):
                 history.append(halley(history[-1], Q2_s, P2_s, e_s))
             root, last, before = history[-1], history[-1] - history[-2], history[-2] - history[-3]
             # Halley is not monotone: next to a tangency it can cross the separator to the
@@ -164,7 +171,7 @@ def _secular_solve(nu, aa, Q2, P2, e, needed, careful):
     def unfinished(carry):
         k, *state = carry
         busy = active(*state)
-        return (k < _MORE_ITERATIONS) & functools.reduce(jnp.logical_or, (jnp.any(x) for x in busy))
+        return (k < MORE_ITERATIONS) & functools.reduce(jnp.logical_or, (jnp.any(x) for x in busy))
 
     def body(carry):
         # Converged slots stop moving, so that a point's result does not depend on the
@@ -220,7 +227,7 @@ def _solve(A, B, C, careful=False, slots=_ALL_SLOTS):
     # Exact (or negligible) zeros of b or c put roots exactly on the axes, where a secular
     # pole meets its root; those cases have closed forms, and the iteration below solves a
     # harmless stand-in for them.
-    factorable = (jnp.abs(b) <= _TINY) | (jnp.abs(c) <= _TINY)
+    factorable = (jnp.abs(b) <= TINY) | (jnp.abs(c) <= TINY)
     sign_b = jnp.where(b < 0, -1.0, 1.0)
     sign_c = jnp.where(c < 0, -1.0, 1.0)
     b_it = jnp.where(factorable, 1.0, b)
@@ -235,14 +242,14 @@ def _solve(A, B, C, careful=False, slots=_ALL_SLOTS):
         cb, cc = jnp.cbrt(b_it), jnp.cbrt(c_it)
         s = cb * cb + cc * cc
         gap = 4 * a2 - s * s * s
-        near = jnp.abs(gap) <= _TANGENT_TOL * 4 * a2
+        near = jnp.abs(gap) <= TANGENT_TOL * 4 * a2
         pair = (gap > 0) & ~near
         tangent_point = near & (a > 0)
         decided = jnp.ones_like(pair)
     else:
         astroid = (b2 + c2 - 4 * a2) ** 3 + 108 * a2 * b2 * c2
-        pair = astroid < -_TANGENT_TOL
-        decided = jnp.abs(astroid) > _TANGENT_TOL
+        pair = astroid < -TANGENT_TOL
+        decided = jnp.abs(astroid) > TANGENT_TOL
         tangent_point = jnp.zeros_like(pair)
 
     # Per slot: Q (the pole of the root), P, the branch e, and how (x, y) are read from
@@ -295,7 +302,7 @@ def _solve(A, B, C, careful=False, slots=_ALL_SLOTS):
         f = 2 * a_ * x * y + b_ * y + c_ * x
         fp = 2 * a_ * (x * x - y * y) + b_ * x - c_ * y
         rotation = -f / jnp.where(fp == 0, 1.0, fp)
-        rotation = jnp.where((jnp.abs(rotation) <= _POLISH_LIMIT) & ~tangent, rotation, 0.0)
+        rotation = jnp.where((jnp.abs(rotation) <= POLISH_LIMIT) & ~tangent, rotation, 0.0)
         x, y = _unit(x - rotation * y, y + rotation * x)
     always = jnp.ones_like(pair)
     per_slot_valid = (always, always, pair | tangent_point, pair)
@@ -329,8 +336,26 @@ def _solve(A, B, C, careful=False, slots=_ALL_SLOTS):
 
 
 def _solve_all(A, B, C):
-    """Every register of a batch, in up to three stages, each on the points the one before
-    left (gathered a batch at a time, so that their cost follows their number):
+    """Every register of a batch: `(phi, cos_phi, sin_phi, valid, continuum, tangent)`, by
+    the compiled CPU kernel where there is one (`cpu_kernel`), else by `_solve_in_xla`."""
+    A, B, C = jnp.broadcast_arrays(*(jnp.asarray(x, jnp.result_type(A, B, C, float)) for x in (A, B, C)))
+    shape = A.shape
+    n = A.size
+    A, B, C = A.reshape(n), B.reshape(n), C.reshape(n)
+    on_cpu = jax.default_backend() == "cpu"
+    kernel = cpu_kernel() if on_cpu and n > 0 and A.dtype == jnp.float64 else None
+    if kernel is not None:
+        cos_phi, sin_phi, valid, continuum, tangent = kernel.solve(A, B, C)
+        out = (_angle(cos_phi, sin_phi), cos_phi, sin_phi, valid, continuum, tangent)
+    else:
+        out = _solve_in_xla(A, B, C)
+    return tuple(x.reshape(shape + x.shape[1:]) for x in out)
+
+
+def _solve_in_xla(A, B, C):
+    """`_solve_all` of flat arrays (n,) by XLA's program, in up to three stages, each on
+    the points the one before left (gathered a batch at a time, so that their cost follows
+    their number):
 
     1. on a CPU, the fast path of the two outer registers of every point (helix_equilibria
        hands it cache-sized chunks): about 95 % of the points of a typical rod have no
@@ -339,10 +364,7 @@ def _solve_all(A, B, C):
        `_INNER_BATCH` at a time; on an accelerator, of all four slots on every point in
        one pass;
     3. the careful path on the points left unconverged, `_FALLBACK_BATCH` at a time."""
-    A, B, C = jnp.broadcast_arrays(*(jnp.asarray(x, jnp.result_type(A, B, C, float)) for x in (A, B, C)))
-    shape = A.shape
-    n = A.size
-    A, B, C = A.reshape(n), B.reshape(n), C.reshape(n)
+    n = A.shape[0]
     on_cpu = jax.default_backend() == "cpu"
     if n > 0 and on_cpu:
         *outer, converged, complete = _solve(A, B, C, slots=(0, 1))
@@ -356,7 +378,32 @@ def _solve_all(A, B, C):
         out = _resolve_where(~converged, tuple(out), _careful_stage, A, B, C, batch)
     else:
         out = out[:-1]
-    return tuple(x.reshape(shape + x.shape[1:]) for x in out)
+    return out
+
+
+#: Environment variable: ``0`` keeps the register solve in XLA on a CPU (no numba kernel).
+KERNEL_ENVIRONMENT_VARIABLE = "HELIXROD_REGISTER_KERNEL"
+
+
+@functools.cache
+def cpu_kernel():
+    """The module of the compiled CPU register kernel (`_register_kernel`), or None where
+    numba is not installed, the kernel fails its check (with a warning), or
+    `KERNEL_ENVIRONMENT_VARIABLE` is ``0``.  Decided once, at the first float64 register
+    solve on a CPU."""
+    if os.environ.get(KERNEL_ENVIRONMENT_VARIABLE, "1").strip() == "0":
+        return None
+    if importlib.util.find_spec("numba") is None:
+        return None
+    try:
+        from . import _register_kernel
+
+        _register_kernel.check()
+    except Exception as error:  # a numba that does not work with this numpy or CPU
+        warnings.warn(f"helixrod: the compiled register kernel is unavailable ({error!r}); "
+                      "registers are solved by XLA", RuntimeWarning, stacklevel=2)
+        return None
+    return _register_kernel
 
 
 def _inner_stage(A, B, C, old):

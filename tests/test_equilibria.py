@@ -219,8 +219,11 @@ def test_cpu_chunks_equal_one_pass(rng, monkeypatch):
         return jax.jit(jax.value_and_grad(loss, has_aux=True))(rod)
 
     monkeypatch.setattr(_equilibria, "_CPU_CHUNK", 10**9)
+
+    monkeypatch.setattr(_equilibria, "_KERNEL_CHUNK", 10**9)
     (_, whole), grad_whole = run(rod)
     monkeypatch.setattr(_equilibria, "_CPU_CHUNK", 128)
+    monkeypatch.setattr(_equilibria, "_KERNEL_CHUNK", 128)
     for r in (rod, rods):
         (_, chunked), grad_chunked = run(r)
         np.testing.assert_array_equal(chunked.valid, whole.valid)
@@ -250,6 +253,7 @@ def test_chunked_linearisation_keeps_only_the_inputs(rng, monkeypatch):
     stored = {}
     for limit in (10**9, 512):
         monkeypatch.setattr(_equilibria, "_CPU_CHUNK", limit)
+        monkeypatch.setattr(_equilibria, "_KERNEL_CHUNK", limit)
         _, linear = jax.linearize(force, rod)
         stored[limit] = sum(x.nbytes for x in jax.tree.leaves(linear)) / (n * 8)
         tangent = jax.tree.map(jnp.ones_like, rod)
@@ -273,6 +277,8 @@ def test_eager_chunked_calls_compile_once(monkeypatch):
     from helixrod import _equilibria
 
     monkeypatch.setattr(_equilibria, "_CPU_CHUNK", 1024)
+
+    monkeypatch.setattr(_equilibria, "_KERNEL_CHUNK", 1024)
     rod = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
     kappa, tau = jnp.linspace(0.1, 3.0, 3000), jnp.linspace(-3.0, 3.0, 3000)
     compiles, listening = [], [False]
@@ -301,6 +307,7 @@ def test_fields_compute_only_what_is_asked(monkeypatch):
     for chunk in (None, 1024):
         if chunk:
             monkeypatch.setattr(_equilibria, "_CPU_CHUNK", chunk)
+            monkeypatch.setattr(_equilibria, "_KERNEL_CHUNK", chunk)
         some = hr.helix_equilibria(rod, kappa, tau, fields=asked)
         for name in asked + ("valid",):
             np.testing.assert_allclose(np.asarray(getattr(some, name), float), np.asarray(getattr(full, name), float),

@@ -21,7 +21,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._compile import jit
-from ._roots import register_roots
+from ._roots import cpu_kernel, register_roots
 from ._rod import Rod
 
 
@@ -116,7 +116,8 @@ def helix_equilibria(rod: Rod, kappa: ArrayLike, tau: ArrayLike, *, fields: Sequ
 
     `fields` (names of `HelixEquilibria` fields) computes only those, and `valid`; the
     others are `None`.  Under `jax.jit` XLA drops unused fields anyway, except in the
-    chunked loop a CPU runs over more than 32 768 points, where asking for fewer fields
+    chunked loop a CPU runs over more than 32 768 points (262 144 with the compiled
+    register kernel, `pip install "helixrod[numba]"`), where asking for fewer fields
     is what makes it fast (`phi, force, moment, stable` of 10^6 points: about 1.5x) and
     keeps the memory of the rest from being allocated.  Unknown names: `ValueError`.
 
@@ -148,8 +149,10 @@ def helix_equilibria(rod: Rod, kappa: ArrayLike, tau: ArrayLike, *, fields: Sequ
             lambda x: jnp.broadcast_to(x, shape + x.shape[len(batch) :]).reshape((size,) + x.shape[len(batch) :]),
             rod,
         )
-    if size > _CPU_CHUNK and jax.default_backend() == "cpu":
-        eq = _equilibria_chunked(rod, kappa, tau, limit=_CPU_CHUNK, fields=fields)
+    on_cpu = jax.default_backend() == "cpu"
+    limit = _KERNEL_CHUNK if on_cpu and dtype == jnp.float64 and cpu_kernel() is not None else _CPU_CHUNK
+    if size > limit and on_cpu:
+        eq = _equilibria_chunked(rod, kappa, tau, limit=limit, fields=fields)
     else:
         eq = _equilibria_flat(rod, kappa, tau, fields)
     return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), eq)
@@ -161,6 +164,11 @@ def helix_equilibria(rod: Rod, kappa: ArrayLike, tau: ArrayLike, *, fields: Sequ
 # faster than one pass over 1e6 points (benchmarks/bench_equilibria.py).  On an
 # accelerator every chunk would be a round of kernel launches: one pass.
 _CPU_CHUNK = 32768
+# With the compiled register kernel (`_roots.cpu_kernel`), whose own blocks stay in cache,
+# only the fields are left to XLA: 1e5 points in one pass took 40-55 ns a point against
+# 87-96 in chunks of 32768 (2 cores); from 1e6 on, chunks of 32768 ... 262144 were within
+# the machine's noise of each other and of one pass.
+_KERNEL_CHUNK = 262144
 
 
 @jit(static_argnames=("limit", "fields"))

@@ -139,12 +139,13 @@ def _prepare(A, B, C):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _point(A, B, C, cos_out, sin_out, valid, tangent, continuum_out, i):
-    """Every register of one point, as `_roots._solve_all` finds it, into row i."""
+def _point(A, B, C, cos_out, sin_out, valid, tangent, continuum_out, i, cs, sn, ok, roots):
+    """Every register of one point, as `_roots._solve_all` finds it, into row i (`cs`, `sn`,
+    `ok`, `roots`: scratch of 4 slots each)."""
     finite, continuum, turn, a, b, c = _prepare(A, B, C)
-    cs = np.zeros(4)
-    sn = np.zeros(4)
-    ok = np.zeros(4, np.bool_)
+    cs[:] = 0.0
+    sn[:] = 0.0
+    ok[:] = False
     tan2 = False
     if continuum:
         for s in range(4):
@@ -176,7 +177,6 @@ def _point(A, B, C, cos_out, sin_out, valid, tangent, continuum_out, i):
         astroid = w * w * w + 108 * a2 * b2 * c2
         pair = astroid < -TANGENT_TOL
         done = abs(astroid) > TANGENT_TOL
-        roots = np.zeros(4)
         for s in range(4 if pair else 2):
             q_is_b = s % 2 == 0
             Q, P, absQ = (b, c, abs_b) if q_is_b else (c, b, abs_c)
@@ -238,6 +238,7 @@ def _solve_block(lo, hi, A, B, C, cos_out, sin_out, valid, tangent, continuum_ou
     cos0, sin0 = np.empty(_BLOCK), np.empty(_BLOCK)
     cos1, sin1 = np.empty(_BLOCK), np.empty(_BLOCK)
     simple = np.empty(_BLOCK, np.bool_)
+    cs, sn, ok, roots = np.empty(4), np.empty(4), np.empty(4, np.bool_), np.empty(4)
     # Branch-free (selects only), so that LLVM vectorises it: the fast path of the two
     # outer registers, and whether the point needs nothing more.
     for i in range(lo, hi):
@@ -271,7 +272,7 @@ def _solve_block(lo, hi, A, B, C, cos_out, sin_out, valid, tangent, continuum_ou
             tangent[i, 0], tangent[i, 1], tangent[i, 2], tangent[i, 3] = False, False, False, False
             continuum_out[i] = False
         else:
-            _point(A[i], B[i], C[i], cos_out, sin_out, valid, tangent, continuum_out, i)
+            _point(A[i], B[i], C[i], cos_out, sin_out, valid, tangent, continuum_out, i, cs, sn, ok, roots)
 
 
 @numba.njit(cache=True, error_model="numpy")

@@ -555,7 +555,9 @@ def _registers(A, B, C):
 def _registers_jvp(primals, tangents):
     A, B, C = primals
     dA, dB, dC = tangents
-    out = _solve_all(A, B, C)
+    # Through `_registers` itself, so that a derivative of this rule (a second derivative)
+    # takes the implicit-function rule again: the compiled CPU kernel has no derivative.
+    out = _registers(A, B, C)
     phi, cos_phi, sin_phi, valid, continuum, tangent = out
     A, B, C, dA, dB, dC = (jnp.asarray(x, phi.dtype)[..., None] for x in (A, B, C, dA, dB, dC))
     sin2 = 2 * sin_phi * cos_phi

@@ -219,7 +219,6 @@ def test_cpu_chunks_equal_one_pass(rng, monkeypatch):
         return jax.jit(jax.value_and_grad(loss, has_aux=True))(rod)
 
     monkeypatch.setattr(_equilibria, "_CPU_CHUNK", 10**9)
-
     monkeypatch.setattr(_equilibria, "_KERNEL_CHUNK", 10**9)
     (_, whole), grad_whole = run(rod)
     monkeypatch.setattr(_equilibria, "_CPU_CHUNK", 128)
@@ -277,7 +276,6 @@ def test_eager_chunked_calls_compile_once(monkeypatch):
     from helixrod import _equilibria
 
     monkeypatch.setattr(_equilibria, "_CPU_CHUNK", 1024)
-
     monkeypatch.setattr(_equilibria, "_KERNEL_CHUNK", 1024)
     rod = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
     kappa, tau = jnp.linspace(0.1, 3.0, 3000), jnp.linspace(-3.0, 3.0, 3000)

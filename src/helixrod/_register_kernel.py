@@ -13,7 +13,7 @@ to XLA as a typed FFI handler (`XLA_FFI_Error* handler(XLA_FFI_CallFrame*)`, the
   that LLVM vectorises: the fast path of the two outer registers of every point;
 * the points that pass leaves -- an inner pair, a zero coefficient, a continuum, a
   non-finite input, an undecided astroid test or an unconverged root (~5 % of the points
-  of a typical rod) -- are solved one at a time, as `_roots._solve_all` solves them.
+  of a typical rod) -- are solved one at a time, as `_roots._solve_in_xla` solves them.
 
 Above `_SERIAL_POINTS` points the blocks are shared among numba's threads
 (`numba.get_num_threads()`, ``NUMBA_NUM_THREADS``) when numba's threading layer can be
@@ -140,7 +140,7 @@ def _prepare(A, B, C):
 
 @numba.njit(cache=True, error_model="numpy")
 def _point(A, B, C, cos_out, sin_out, valid, tangent, continuum_out, i, cs, sn, ok, roots):
-    """Every register of one point, as `_roots._solve_all` finds it, into row i (`cs`, `sn`,
+    """Every register of one point, as `_roots._solve_in_xla` finds it, into row i (`cs`, `sn`,
     `ok`, `roots`: scratch of 4 slots each)."""
     finite, continuum, turn, a, b, c = _prepare(A, B, C)
     cs[:] = 0.0
@@ -429,7 +429,7 @@ def check():
 
 def solve(A, B, C):
     """`(cos_phi, sin_phi, valid, continuum, tangent)` of flat float64 arrays A, B, C of
-    shape (n,): per-slot outputs (n, 4), `continuum` (n,); as `_roots._solve_all`."""
+    shape (n,): per-slot outputs (n, 4), `continuum` (n,); as `_roots._solve_in_xla`."""
     n = A.shape[0]
     per_slot = jax.ShapeDtypeStruct((n, 4), jnp.float64)
     flags = jax.ShapeDtypeStruct((n, 4), jnp.bool_)

@@ -74,7 +74,7 @@ MORE_ITERATIONS = 128
 # there are unconverged points), on a CPU and on an accelerator (where each batch is a
 # round of kernel launches).
 _FALLBACK_BATCH = 256
-# Points with an inner pair solved together on a CPU (stage 2 of `_solve_all`).
+# Points with an inner pair solved together on a CPU (stage 2 of `_solve_in_xla`).
 _INNER_BATCH = 1024
 _ACCELERATOR_FALLBACK_BATCH = 16384
 # Convergence, relative to nu.  A step at round-off; or, in the asymptotic regime, a

@@ -312,9 +312,9 @@ def _words(address, count):
 
 
 # Offsets in 8-byte words (x86-64 / aarch64 layout of c_api.h's structs): in
-# XLA_FFI_CallFrame, extension_start 1, stage 4, args.size 7, args.args 9, rets.args 14;
-# in XLA_FFI_Buffer, data 3, rank 4, dims 5; in XLA_FFI_Extension_Base, type 1; in
-# XLA_FFI_Metadata_Extension, metadata 3; in XLA_FFI_Metadata, api_version.major_version
+# XLA_FFI_CallFrame, extension_start 1, stage 4, args.size 7, args.args 9, rets.size 12,
+# rets.rets 14; in XLA_FFI_Buffer, data 3, rank 4, dims 5; in XLA_FFI_Extension_Base, type 1;
+# in XLA_FFI_Metadata_Extension, metadata 3; in XLA_FFI_Metadata, api_version.major_version
 # at byte 24 (int32, minor at 28), traits at byte 32 (uint32).
 _EXTENSION_METADATA = 1
 _STAGE_EXECUTE = 3

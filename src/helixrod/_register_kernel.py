@@ -139,9 +139,9 @@ def _prepare(A, B, C):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _point(A, B, C, cos_out, sin_out, valid, tangent, continuum_out, i, cs, sn, ok, roots):
+def _point(A, B, C, cos_out, sin_out, valid, tangent, continuum_out, i, cs, sn, ok):
     """Every register of one point, as `_roots._solve_in_xla` finds it, into row i (`cs`, `sn`,
-    `ok`, `roots`: scratch of 4 slots each)."""
+    `ok`: scratch of 4 slots each)."""
     finite, continuum, turn, a, b, c = _prepare(A, B, C)
     cs[:] = 0.0
     sn[:] = 0.0
@@ -178,19 +178,16 @@ def _point(A, B, C, cos_out, sin_out, valid, tangent, continuum_out, i, cs, sn, 
         pair = astroid < -TANGENT_TOL
         done = abs(astroid) > TANGENT_TOL
         for s in range(4 if pair else 2):
-            q_is_b = s % 2 == 0
-            Q, P, absQ = (b, c, abs_b) if q_is_b else (c, b, abs_c)
+            Q, P, absQ = (b, c, abs_b) if s % 2 == 0 else (c, b, abs_c)
             if s >= 2:
                 room = 1 - P * P / ((aa - absQ) * (aa - absQ))
-                roots[s], converged = _fast_root(absQ / math.sqrt(max(room, 1e-300)), aa, Q * Q, P * P, -1.0)
+                nu, converged = _fast_root(absQ / math.sqrt(max(room, 1e-300)), aa, Q * Q, P * P, -1.0)
+                cs[s], sn[s] = _xy(s == 3, -1.0, nu, aa, Q, P, -1.0)
             else:
-                roots[s], converged = _fast_root(max(absQ, r_low - aa), aa, Q * Q, P * P, 1.0)
+                nu, converged = _fast_root(max(absQ, r_low - aa), aa, Q * Q, P * P, 1.0)
+                cs[s], sn[s] = _xy(s == 1, 1.0, nu, aa, Q, P, 1.0)
             done &= converged
         if done:
-            for s in range(4 if pair else 2):
-                Q, P = (b, c) if s % 2 == 0 else (c, b)
-                inner = s >= 2
-                cs[s], sn[s] = _xy(s % 2 == 1, -1.0 if inner else 1.0, roots[s], aa, Q, P, -1.0 if inner else 1.0)
             ok[0], ok[1], ok[2], ok[3] = True, True, pair, pair
         else:
             # The careful path (`_roots._solve(..., careful=True)`).
@@ -238,13 +235,12 @@ def _solve_block(lo, hi, A, B, C, cos_out, sin_out, valid, tangent, continuum_ou
     cos0, sin0 = np.empty(_BLOCK), np.empty(_BLOCK)
     cos1, sin1 = np.empty(_BLOCK), np.empty(_BLOCK)
     simple = np.empty(_BLOCK, np.bool_)
-    cs, sn, ok, roots = np.empty(4), np.empty(4), np.empty(4, np.bool_), np.empty(4)
+    cs, sn, ok = np.empty(4), np.empty(4), np.empty(4, np.bool_)
     # Branch-free (selects only), so that LLVM vectorises it: the fast path of the two
     # outer registers, and whether the point needs nothing more.
     for i in range(lo, hi):
         finite, continuum, turn, a, b, c = _prepare(A[i], B[i], C[i])
-        abs_b, abs_c = abs(b), abs(c)
-        factorable = (abs_b <= TINY) | (abs_c <= TINY)
+        factorable = (abs(b) <= TINY) | (abs(c) <= TINY)
         b = 1.0 if factorable else b
         c = 1.0 if factorable else c
         abs_b, abs_c = abs(b), abs(c)
@@ -272,7 +268,7 @@ def _solve_block(lo, hi, A, B, C, cos_out, sin_out, valid, tangent, continuum_ou
             tangent[i, 0], tangent[i, 1], tangent[i, 2], tangent[i, 3] = False, False, False, False
             continuum_out[i] = False
         else:
-            _point(A[i], B[i], C[i], cos_out, sin_out, valid, tangent, continuum_out, i, cs, sn, ok, roots)
+            _point(A[i], B[i], C[i], cos_out, sin_out, valid, tangent, continuum_out, i, cs, sn, ok)
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -333,7 +329,6 @@ def _arguments(frame_address):
     """The call frame's buffers as arrays, and whether XLA asks to execute: registration
     first calls the handler for its metadata (the FFI version it was built for)."""
     frame = numba.carray(frame_address, (15,), dtype=np.int64)
-    execute = frame[1] == 0 and (frame[4] & 0xFFFFFFFF) == _STAGE_EXECUTE
     if frame[1] != 0:
         base = _words(frame[1], 4)
         if (base[1] & 0xFFFFFFFF) == _EXTENSION_METADATA:
@@ -341,17 +336,17 @@ def _arguments(frame_address):
             version = numba.carray(_pointer(metadata + 24), (2,), dtype=np.int32)
             version[0], version[1] = _API_MAJOR, _API_MINOR
             numba.carray(_pointer(metadata + 32), (1,), dtype=np.uint32)[0] = 0
-    # This module's own calls: 3 arguments, 5 results (anything else is left alone).
-    execute = execute and frame[7] == 3 and frame[12] == 5
+    # Executed: this module's own calls, 3 arguments and 5 results (anything else is left alone).
+    execute = frame[1] == 0 and (frame[4] & 0xFFFFFFFF) == _STAGE_EXECUTE and frame[7] == 3 and frame[12] == 5
+    args = _words(frame[9], 3) if execute else np.zeros(3, np.int64)
+    rets = _words(frame[14], 5) if execute else np.zeros(5, np.int64)
     n = 0
     if execute:
-        first = _words(_words(frame[9], 1)[0], 6)
+        first = _words(args[0], 6)
         dims = _words(first[5], first[4])
         n = 1
         for k in range(first[4]):
             n *= dims[k]
-    args = _words(frame[9], 3) if execute else np.zeros(3, np.int64)
-    rets = _words(frame[14], 5) if execute else np.zeros(5, np.int64)
     return (
         execute,
         _buffer(args[0], n, np.float64),

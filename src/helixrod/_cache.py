@@ -5,7 +5,10 @@ helixrod's first calls are dominated by XLA compilation (tens of seconds for a f
 cores); JAX's persistent cache stores the compiled executables keyed by the program, the
 backend and the JAX version, so a second process that runs the same call loads them.  JAX
 does not store executables that contain host callbacks, so a program with a raising
-runtime check (`equinox.error_if`) is compiled again in every process.  The cache is a
+runtime check (`equinox.error_if`) is compiled again in every process.  The tracing and
+lowering that precede the lookup are not cached by JAX; for helixrod's largest program
+(the shooting solve of `solve_boundary_value`) the same directory also keeps its exported
+form (`_trace_cache.py`), so that a later process skips them too.  The cache is a
 directory of files that is safe to delete at any time.
 """
 
@@ -15,6 +18,8 @@ import os
 from pathlib import Path
 
 import jax
+
+from . import _trace_cache
 
 #: Environment variable naming the cache directory (overrides the per-user default).
 CACHE_ENVIRONMENT_VARIABLE = "HELIXROD_CACHE_DIR"
@@ -32,7 +37,8 @@ def default_cache_directory() -> Path:
 def enable_compilation_cache(path: str | os.PathLike | None = None, *, min_compile_seconds: float = 0.2) -> Path:
     """Turn on JAX's persistent compilation cache in `path` (default
     `default_cache_directory()`, created if missing) for every program that took at least
-    `min_compile_seconds` to compile; returns the directory.  This changes global JAX
+    `min_compile_seconds` to compile, and the exported programs of `_trace_cache.py` (in
+    its sub-directory `helixrod-traces`); returns the directory.  This changes global JAX
     configuration (`jax_compilation_cache_dir` and the cache thresholds) for the whole
     process, which helixrod otherwise never does: the command line calls it, a library user
     opts in.  Call it before the first compilation you want cached."""
@@ -45,4 +51,5 @@ def enable_compilation_cache(path: str | os.PathLike | None = None, *, min_compi
     jax.config.update("jax_compilation_cache_dir", str(directory))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_seconds))
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    _trace_cache.enable(directory)
     return directory

@@ -44,6 +44,8 @@ from importlib import metadata
 import equinox as eqx
 import jax
 
+from . import _trace_cache
+
 
 def _version(text: str) -> tuple[int, ...]:
     parts = []
@@ -131,25 +133,39 @@ def _compiles_for_cpu() -> bool:
     return jax.default_backend() == "cpu"
 
 
-def _with_options(plain, tuned, options):
-    """`tuned` (compiled with `options`) at the top level on the CPU, else `plain`."""
-    if not options:
+def _with_options(plain, tuned, options, traced_once=None):
+    """`tuned` (compiled with `options`) at the top level on the CPU, else `plain`; with
+    `traced_once` = (name, static argument names), a top-level call goes through the trace
+    cache (`_trace_cache.py`) when it is on."""
+    if not options and traced_once is None:
         return plain
 
     @functools.wraps(plain)
     def call(*args, **kwargs):
-        return (tuned if _at_top_level() and _compiles_for_cpu() else plain)(*args, **kwargs)
+        if not _at_top_level():
+            return plain(*args, **kwargs)
+        fallback = tuned if options and _compiles_for_cpu() else plain
+        if traced_once is not None and _trace_cache.enabled():
+            name, static_argnames = traced_once
+            return _trace_cache.cached_call(
+                plain, fallback, name, static_argnames, options if fallback is tuned else {}, args, kwargs
+            )
+        return fallback(*args, **kwargs)
 
     return call
 
 
-def jit(fun=None, /, *, run_once: bool = False, **kwargs):
+def jit(fun=None, /, *, run_once: bool = False, trace_cache: bool = False, **kwargs):
     """`jax.jit` with `COMPILER_OPTIONS` (with `run_once`, `RUN_ONCE_OPTIONS`) at the top
-    level on the CPU; usable as `@jit`, `@jit(static_argnames=...)` or `jit(fun, ...)`."""
+    level on the CPU; usable as `@jit`, `@jit(static_argnames=...)` or `jit(fun, ...)`.
+    `trace_cache`: top-level calls go through `_trace_cache.py` when the compilation cache
+    is on (a large program that takes seconds to trace; static arguments by name only)."""
     if fun is None:
-        return functools.partial(jit, run_once=run_once, **kwargs)
+        return functools.partial(jit, run_once=run_once, trace_cache=trace_cache, **kwargs)
     options = RUN_ONCE_OPTIONS if run_once else COMPILER_OPTIONS
-    return _with_options(jax.jit(fun, **kwargs), jax.jit(fun, compiler_options=options, **kwargs), options)
+    static = kwargs.get("static_argnames", ())
+    traced_once = (f"{fun.__module__}.{fun.__qualname__}", (static,) if isinstance(static, str) else tuple(static)) if trace_cache else None
+    return _with_options(jax.jit(fun, **kwargs), jax.jit(fun, compiler_options=options, **kwargs), options, traced_once)
 
 
 def filter_jit(fun=None, /, **kwargs):

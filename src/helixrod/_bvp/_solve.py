@@ -215,7 +215,7 @@ def solve_with_warm_start(rod, length, start: Clamped, end: EndCondition, guess,
     return solve(rod, length, start, end, guess, saveat, options, guess_kind)
 
 
-@jit(static_argnames="guess_kind")
+@jit(static_argnames="guess_kind", trace_cache=True)
 def solve(rod, length, start: Clamped, end: EndCondition, guess, saveat, options: BoundaryValueOptions, guess_kind="helix"):
     """The solve behind `solve_boundary_value` (checked inputs; never raises: read
     `result`).  `guess`: `None` (the default guess of `guess_kind`), a `WarmStart` of as

@@ -1,0 +1,266 @@
+"""Traced programs on disk: a later process calls a large program without tracing it again.
+
+The persistent compilation cache (`_cache.py`) saves XLA's compilation, not JAX's tracing and
+lowering, which every process repeats before it can even look the program up: for the
+shooting solve behind `solve_boundary_value` that is ~2.3 s of Python.  With the cache on, a
+program made with `jit(..., trace_cache=True)` (`_compile.py`) is, at its first top-level
+call with a new signature, exported (`jax.export`: traced and lowered once, as a plain call
+would) and saved as StableHLO beside the compiled programs; a later process with the same
+signature deserialises it (milliseconds) and compiles it, which the persistent cache
+answers.  Measured (fresh processes, `benchmarks/bench_first_calls.py`): the warm first
+call of `solve_boundary_value` 3.7 -> 1.5 s on one core, 3.5 -> 1.5 s on 2 cores; the
+export costs the cold process 0.2-0.4 s more than a plain trace and lowering.
+
+What makes a signature, and why a stale file cannot be used: the file's name is a hash of
+the program's name, the structure of its arguments (every pytree node and its static data,
+e.g. a solve's options), the shapes and dtypes of their arrays, the static arguments, the
+versions of JAX, jaxlib and the libraries helixrod traces through, a digest of helixrod's
+own source, JAX's float precision and backend, and the compiler options.  Only arguments
+built from helixrod's own types (and JAX's, equinox's, diffrax's, optimistix's, lineax's)
+are cached: a user's constitutive law, whose code the hash cannot see, always takes the
+plain path, as does anything a hash cannot name the same way in two processes (a callable).
+
+Anything that goes wrong (an argument that is not an array, a file that cannot be read or
+written) falls back to the plain call, silently.  A program that `jax.export` refuses (one
+with a host callback: a solve with `saveat`, whose checks in diffrax raise at run time) is
+compiled from the trace already made, and the refusal is saved too, so that later
+processes take the plain path at once.  Inside a caller's `jit`, `vmap` or `grad` the plain call is used
+(an exported program has no batching rule).  The files are safe to delete at any time.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import inspect
+import io
+import os
+import pickle
+from importlib import metadata
+from pathlib import Path
+
+import jax
+import numpy as np
+
+#: Sub-directory of the compilation cache that holds the exported programs.
+SUBDIRECTORY = "helixrod-traces"
+
+#: Top-level packages whose pytree nodes may appear in a cached program's arguments.
+KNOWN_PACKAGES = ("helixrod", "jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "builtins", "collections")
+
+_LIBRARIES = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "numpy")
+
+#: Environment variables that change what a program traces to.
+_ENVIRONMENT = ("EQX_ON_ERROR", "HELIXROD_REGISTER_KERNEL", "HELIXROD_COMPILER_OPTIONS")
+
+_directory: Path | None = None
+_programs: dict[str, tuple] = {}  # signature -> (compiled call, output structure)
+_signatures: dict[tuple, str] = {}  # (name, structure, leaves, statics, precision) -> signature
+_refused: set[str] = set()  # signatures that could not be exported
+#: Counts of what the cache did in this process (for the tests and benchmarks).
+counts = {"exported": 0, "loaded": 0, "refused": 0}
+
+
+def enable(directory: str | os.PathLike | None) -> None:
+    """Keep exported programs under `directory` / `SUBDIRECTORY` (`None`: stop)."""
+    global _directory
+    _directory = None if directory is None else Path(directory) / SUBDIRECTORY
+
+
+def enabled() -> bool:
+    return _directory is not None and _serialisation_available()
+
+
+@functools.cache
+def _serialisation_available() -> bool:
+    try:  # jax.export's serialisation needs the optional `flatbuffers` package
+        from jax._src.export import serialization  # noqa: F401
+    except ImportError:
+        return False
+    return _missing_sentinel() is not None
+
+
+@functools.cache
+def _missing_sentinel():
+    """equinox's placeholder in a Module's static data, which a pickled structure must map
+    back to the very object (equinox tests it by identity); None where it cannot be found."""
+    try:
+        from equinox._module._flatten import MISSING
+    except ImportError:
+        return None
+    return MISSING
+
+
+@functools.cache
+def _environment_digest() -> str:
+    """Versions of the libraries a program is traced through, and helixrod's source."""
+    digest = hashlib.sha256()
+    for name in _LIBRARIES:
+        try:
+            digest.update(f"{name}={metadata.version(name)};".encode())
+        except metadata.PackageNotFoundError:
+            digest.update(f"{name}=none;".encode())
+    root = Path(__file__).parent
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def _known_nodes(treedef) -> bool:
+    """Whether every node of `treedef` is a type of `KNOWN_PACKAGES` and its static data has
+    a text that names it the same way in every process (no object addresses)."""
+    if " at 0x" in str(treedef):
+        return False
+    stack = [treedef]
+    while stack:
+        node = stack.pop()
+        data = node.node_data()
+        if data is not None:
+            kind = data[0]
+            if getattr(kind, "__module__", "").split(".")[0] not in KNOWN_PACKAGES:
+                return False
+        stack.extend(node.children())
+    return True
+
+
+def _leaf_signature(leaf) -> tuple | None:
+    """(shape, dtype, weak type) of an array leaf; None for anything else."""
+    if isinstance(leaf, jax.Array):
+        return (leaf.shape, leaf.dtype.name, leaf.weak_type)
+    if isinstance(leaf, (np.ndarray, np.generic)):
+        return (leaf.shape, leaf.dtype.name, False)
+    if isinstance(leaf, (bool, int, float, complex)):  # weakly typed, of the precision JAX runs in
+        return ((), type(leaf).__name__, True)
+    return None
+
+
+class _Pickler(pickle.Pickler):
+    def persistent_id(self, obj):
+        return "equinox-missing" if obj is _missing_sentinel() else None
+
+
+class _Unpickler(pickle.Unpickler):
+    def persistent_load(self, pid):
+        if pid != "equinox-missing":
+            raise pickle.UnpicklingError(f"unknown persistent id {pid!r}")
+        return _missing_sentinel()
+
+
+def _dumps(obj) -> bytes:
+    out = io.BytesIO()
+    _Pickler(out, protocol=pickle.HIGHEST_PROTOCOL).dump(obj)
+    return out.getvalue()
+
+
+def _loads(data: bytes):
+    return _Unpickler(io.BytesIO(data)).load()
+
+
+@functools.cache
+def _parameters(plain) -> inspect.Signature:
+    return inspect.signature(plain)
+
+
+def cached_call(plain, fallback, name: str, static_argnames: tuple[str, ...], compiler_options: dict, args, kwargs):
+    """`plain(*args, **kwargs)` (a `jax.jit` function; top-level call) through the exported
+    program of its signature, compiled with `compiler_options`, when the cache holds one or
+    can make one; else `fallback(*args, **kwargs)` (the same program)."""
+    try:
+        bound = _parameters(plain).bind(*args, **kwargs)
+    except (TypeError, ValueError):
+        return fallback(*args, **kwargs)
+    bound.apply_defaults()
+    statics = {key: value for key, value in bound.arguments.items() if key in static_argnames}
+    dynamic = {key: value for key, value in bound.arguments.items() if key not in static_argnames}
+    leaves, treedef = jax.tree.flatten(dynamic)
+    avals = tuple(_leaf_signature(leaf) for leaf in leaves)
+    if any(a is None for a in avals):
+        return fallback(*args, **kwargs)
+    try:  # this process's index of the signatures it has met (hashing the text costs more)
+        seen = (name, treedef, avals, tuple(sorted(statics.items())), jax.config.jax_enable_x64)
+        signature = _signatures.get(seen)
+    except TypeError:  # an unhashable static argument
+        seen = signature = None
+    if signature is None:
+        if not _known_nodes(treedef):
+            return fallback(*args, **kwargs)
+        text = "|".join([
+            name, str(treedef), repr(avals), repr(sorted(statics.items())), _environment_digest(),
+            str(jax.config.jax_enable_x64), jax.default_backend(), repr(sorted(compiler_options.items())),
+            repr([os.environ.get(v) for v in _ENVIRONMENT]),
+        ])
+        signature = hashlib.sha256(text.encode()).hexdigest()
+        if seen is not None:
+            _signatures[seen] = signature
+    program = _programs.get(signature)
+    if program is None:
+        if signature in _refused or (_directory / f"{signature}.refused").exists():
+            _refused.add(signature)
+            return fallback(*args, **kwargs)
+        program = _load(signature, compiler_options) or _export(signature, plain, treedef, statics, leaves, compiler_options)
+    if program is None:
+        return fallback(*args, **kwargs)
+    call, out_tree = program
+    return jax.tree.unflatten(out_tree, call(*leaves))
+
+
+def _load(signature: str, compiler_options: dict):
+    path = _directory / f"{signature}.export"
+    try:
+        record = _loads(path.read_bytes())
+        exported = jax.export.deserialize(record["exported"])
+        out_tree = _loads(record["out_tree"])
+    except Exception:  # a missing, partial or foreign file: export again
+        return None
+    program = (jax.jit(exported.call, compiler_options=compiler_options or None), out_tree)
+    _programs[signature] = program
+    counts["loaded"] += 1
+    return program
+
+
+def _export(signature: str, plain, treedef, statics: dict, leaves, compiler_options: dict):
+    """Export, save and compile the program of `signature`.  Where `jax.export` refuses it
+    (a host callback, e.g. a raising check) the refusal is saved too, so that later
+    processes take the plain path at once, and this process compiles the flat program it
+    has traced (JAX reuses the trace of `plain`): no second trace."""
+    out_trees = []
+
+    def flat(*flat_leaves):
+        out = plain(**jax.tree.unflatten(treedef, flat_leaves), **statics)
+        out_leaves, out_tree = jax.tree.flatten(out)
+        out_trees.append(out_tree)
+        return out_leaves
+
+    avals = [jax.typeof(leaf) for leaf in leaves]
+    shapes = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=getattr(a, "weak_type", False)) for a in avals]
+    options = compiler_options or None
+    try:
+        exported = jax.export.export(jax.jit(flat))(*shapes)
+        record = {"exported": exported.serialize(), "out_tree": _dumps(out_trees[-1])}
+    except Exception:
+        if not out_trees:  # the trace failed: the plain call raises its error
+            return None
+        _refused.add(signature)
+        counts["refused"] += 1
+        _write(_directory / f"{signature}.refused", b"")
+        program = (jax.jit(flat, compiler_options=options), out_trees[-1])
+        _programs[signature] = program
+        return program
+    _write(_directory / f"{signature}.export", _dumps(record))
+    program = (jax.jit(exported.call, compiler_options=options), out_trees[-1])
+    _programs[signature] = program
+    counts["exported"] += 1
+    return program
+
+
+def _write(path: Path, data: bytes) -> None:
+    """`data` to `path` atomically (a reader sees the whole file or none); an unwritable
+    cache costs the next process a trace, nothing else."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        partial = path.with_suffix(f".{os.getpid()}.partial")
+        partial.write_bytes(data)
+        partial.replace(path)
+    except OSError:
+        pass

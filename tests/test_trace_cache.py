@@ -1,0 +1,147 @@
+"""The trace cache: a program exported by one process is called by the next without tracing."""
+
+import subprocess
+import sys
+import textwrap
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from helixrod import _trace_cache
+from helixrod._compile import jit
+
+traces = []
+
+
+@jit(static_argnames="power", trace_cache=True)
+def program(x, pair, power=2):
+    traces.append(power)  # runs once per trace
+    return {"value": jnp.sum(x**power) + pair[0] * pair[1], "shape": x * 2.0}
+
+
+class Foreign(eqx.Module):
+    """A type the cache cannot vouch for (not helixrod's, JAX's or equinox's)."""
+
+    a: jax.Array
+
+
+@jit(trace_cache=True)
+def scaled(module, x):
+    return module.a * x
+
+
+@jit(trace_cache=True)
+def with_callback(x):
+    return jax.pure_callback(lambda v: np.asarray(v) + 1.0, jax.ShapeDtypeStruct(x.shape, x.dtype), x)
+
+
+@pytest.fixture
+def cache(tmp_path):
+    saved = dict(_trace_cache.counts)
+    _trace_cache.enable(tmp_path)
+    try:
+        yield tmp_path / _trace_cache.SUBDIRECTORY
+    finally:
+        _trace_cache.enable(None)
+        _trace_cache._programs.clear()
+        _trace_cache._refused.clear()
+        _trace_cache.counts.update(saved)
+
+
+def _new_process():
+    """What a later process has: the files, none of this process's programs."""
+    _trace_cache._programs.clear()
+
+
+def test_a_later_process_calls_the_exported_program_without_tracing(cache):
+    x, pair = jnp.arange(4.0), (jnp.asarray(2.0), jnp.asarray(3.0))
+    expected = program.__wrapped__(x, pair, power=3)
+    traces.clear()
+    first = program(x, pair, power=3)
+    assert traces == [3] and _trace_cache.counts["exported"] >= 1
+    assert len(list(cache.glob("*.export"))) == 1
+    _new_process()
+    loaded_before = _trace_cache.counts["loaded"]
+    later = program(x + 1.0, pair, power=3)  # same signature, new values
+    assert traces == [3], "the later process traced the program again"
+    assert _trace_cache.counts["loaded"] == loaded_before + 1
+    for a, b in ((first, expected), (later, program.__wrapped__(x + 1.0, pair, power=3))):
+        assert jax.tree.structure(a) == jax.tree.structure(b)
+        for u, v in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+            np.testing.assert_array_equal(np.asarray(u), np.asarray(v))
+
+
+def test_a_new_signature_is_a_new_program(cache):
+    x, pair = jnp.arange(4.0), (jnp.asarray(2.0), jnp.asarray(3.0))
+    program(x, pair, power=2)
+    program(x, pair, power=3)  # a static argument
+    program(jnp.arange(5.0), pair, power=2)  # a shape
+    program(x, (jnp.asarray(2.0), jnp.asarray(3, jnp.int32)), power=2)  # a dtype
+    program(x, [jnp.asarray(2.0), jnp.asarray(3.0)], power=2)  # a structure
+    assert len(list(cache.glob("*.export"))) == 5
+
+
+def test_what_it_cannot_vouch_for_takes_the_plain_path(cache):
+    x = jnp.arange(3.0)
+    assert float(scaled(Foreign(jnp.asarray(2.0)), x)[2]) == 4.0  # a foreign pytree node
+    refused = _trace_cache.counts["refused"]
+    assert float(with_callback(x)[0]) == 1.0  # a host callback: jax.export refuses it
+    assert _trace_cache.counts["refused"] == refused + 1 and len(list(cache.glob("*.refused"))) == 1
+    _new_process()
+    _trace_cache._refused.clear()
+    assert float(with_callback(x + 1.0)[0]) == 2.0  # a later process reads the refusal: no second attempt
+    assert _trace_cache.counts["refused"] == refused + 1
+    traces.clear()
+    # Inside a caller's transformation the plain program is traced as part of the caller's.
+    out = jax.vmap(lambda v: program(v, (v[0], v[1]), power=2)["value"])(jnp.ones((3, 4)))
+    np.testing.assert_allclose(np.asarray(out), 5.0)
+    assert traces == [2]
+    assert list(cache.glob("*.export")) == []
+
+
+def test_a_damaged_file_is_exported_again(cache):
+    x, pair = jnp.arange(4.0), (jnp.asarray(2.0), jnp.asarray(3.0))
+    program(x, pair, power=4)
+    (path,) = cache.glob("*.export")
+    path.write_bytes(b"not a program")
+    _new_process()
+    exported = _trace_cache.counts["exported"]
+    out = program(x, pair, power=4)
+    assert float(out["value"]) == float(np.sum(np.arange(4.0) ** 4) + 6.0)
+    assert _trace_cache.counts["exported"] == exported + 1 and path.stat().st_size > 100
+
+
+SCRIPT = textwrap.dedent(
+    """
+    import sys, json, jax, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    import helixrod as hr
+    from helixrod import _trace_cache
+    hr.enable_compilation_cache(sys.argv[1])
+    sol = hr.solve_boundary_value(hr.Rod(1.0, 1.5, 0.8), 1.0, end=hr.Loaded(force=(0.0, 0.0, -3.0)))
+    print(json.dumps(dict(counts=_trace_cache.counts, force=np.asarray(sol.force).tolist(), index=int(sol.instability_index),
+                          x=np.asarray(sol.end_position).tolist(), ok=bool(sol.ok))))
+    """
+)
+
+
+@pytest.mark.heavy
+def test_solve_boundary_value_in_a_later_process(tmp_path):
+    """The shooting solve, exported by a first process, is loaded by a second that finds
+    the same (buckled, stable) state."""
+    import json
+
+    runs = []
+    for _ in range(2):
+        out = subprocess.run([sys.executable, "-c", SCRIPT, str(tmp_path)], capture_output=True, text=True, timeout=600)
+        assert out.returncode == 0, out.stderr[-3000:]
+        runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    first, second = runs
+    assert first["counts"]["exported"] >= 1 and first["counts"]["loaded"] == 0
+    assert second["counts"]["loaded"] >= 1 and second["counts"]["exported"] == 0
+    assert first["ok"] and second["ok"] and first["index"] == second["index"] == 0
+    np.testing.assert_allclose(second["force"], first["force"], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(second["x"], first["x"], rtol=0, atol=1e-12)

@@ -38,6 +38,7 @@ already sets ``xla_backend_extra_options``, and `HELIXROD_COMPILER_OPTIONS=0` tu
 from __future__ import annotations
 
 import functools
+import inspect
 import os
 from importlib import metadata
 
@@ -159,13 +160,22 @@ def jit(fun=None, /, *, run_once: bool = False, trace_cache: bool = False, **kwa
     """`jax.jit` with `COMPILER_OPTIONS` (with `run_once`, `RUN_ONCE_OPTIONS`) at the top
     level on the CPU; usable as `@jit`, `@jit(static_argnames=...)` or `jit(fun, ...)`.
     `trace_cache`: top-level calls go through `_trace_cache.py` when the compilation cache
-    is on (a large program that takes seconds to trace; static arguments by name only)."""
+    is on (a large program that takes seconds to trace)."""
     if fun is None:
         return functools.partial(jit, run_once=run_once, trace_cache=trace_cache, **kwargs)
     options = RUN_ONCE_OPTIONS if run_once else COMPILER_OPTIONS
-    static = kwargs.get("static_argnames", ())
-    traced_once = (f"{fun.__module__}.{fun.__qualname__}", (static,) if isinstance(static, str) else tuple(static)) if trace_cache else None
+    traced_once = (f"{fun.__module__}.{fun.__qualname__}", _static_names(fun, kwargs)) if trace_cache else None
     return _with_options(jax.jit(fun, **kwargs), jax.jit(fun, compiler_options=options, **kwargs), options, traced_once)
+
+
+def _static_names(fun, jit_kwargs) -> tuple[str, ...]:
+    """The names of the static arguments of `jax.jit(fun, **jit_kwargs)`."""
+    names = jit_kwargs.get("static_argnames", ())
+    numbers = jit_kwargs.get("static_argnums", ())
+    names = (names,) if isinstance(names, str) else tuple(names)
+    numbers = (numbers,) if isinstance(numbers, int) else tuple(numbers)
+    parameters = list(inspect.signature(fun).parameters)
+    return names + tuple(parameters[i] for i in numbers)
 
 
 def filter_jit(fun=None, /, **kwargs):
@@ -190,6 +200,9 @@ class StaticHalf:
 
     def __eq__(self, other):
         return isinstance(other, StaticHalf) and self.treedef == other.treedef and self.leaves == other.leaves
+
+    def __repr__(self):  # the same text in every process (a key of `_trace_cache.py`)
+        return f"StaticHalf({self.treedef}, {self.leaves!r})"
 
     def combine(self, arrays):
         """The whole pytree again, from its array half."""

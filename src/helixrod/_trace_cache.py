@@ -21,10 +21,10 @@ are cached: a user's constitutive law, whose code the hash cannot see, always ta
 plain path, as does anything a hash cannot name the same way in two processes (a callable).
 
 Anything that goes wrong (an argument that is not an array, a file that cannot be read or
-written) falls back to the plain call, silently.  A program that `jax.export` refuses (one
-with a host callback: a solve with `saveat`, whose checks in diffrax raise at run time) is
-compiled from the trace already made, and the refusal is saved too, so that later
-processes take the plain path at once.  Inside a caller's `jit`, `vmap` or `grad` the plain call is used
+written) falls back to the plain call, silently.  A program that `jax.export` refuses (a host callback, e.g.
+a check that raises at run time, or a custom call such as the register kernel's) costs the
+first process of its signature a second trace; the refusal is saved, and later processes
+take the plain path at once.  Inside a caller's `jit`, `vmap` or `grad` the plain call is used
 (an exported program has no batching rule).  The files are safe to delete at any time.
 """
 
@@ -46,7 +46,7 @@ import numpy as np
 SUBDIRECTORY = "helixrod-traces"
 
 #: Top-level packages whose pytree nodes may appear in a cached program's arguments.
-KNOWN_PACKAGES = ("helixrod", "jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "builtins", "collections")
+KNOWN_PACKAGES = ("helixrod", "jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "numpy", "builtins", "collections")
 
 _LIBRARIES = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "numpy")
 
@@ -124,6 +124,24 @@ def _known_nodes(treedef) -> bool:
     return True
 
 
+def _static_text(statics: dict) -> str | None:
+    """The static arguments as text that names them the same way in every process, or None
+    where it cannot: an object address in a repr (a callable), or a type from outside
+    `KNOWN_PACKAGES`, also inside a `StaticHalf` (`_compile.split_arrays`)."""
+    for value in statics.values():
+        values = [value]
+        treedef = getattr(value, "treedef", None)
+        if isinstance(treedef, jax.tree_util.PyTreeDef):
+            if not _known_nodes(treedef):
+                return None
+            values = list(getattr(value, "leaves", ()))
+        for item in values:
+            if type(item).__module__.split(".")[0] not in KNOWN_PACKAGES:
+                return None
+    text = repr(sorted(statics.items()))
+    return None if " at 0x" in text else text
+
+
 def _leaf_signature(leaf) -> tuple | None:
     """(shape, dtype, weak type) of an array leaf; None for anything else."""
     if isinstance(leaf, jax.Array):
@@ -183,10 +201,11 @@ def cached_call(plain, fallback, name: str, static_argnames: tuple[str, ...], co
     except TypeError:  # an unhashable static argument
         seen = signature = None
     if signature is None:
-        if not _known_nodes(treedef):
+        static_text = _static_text(statics)
+        if static_text is None or not _known_nodes(treedef):
             return fallback(*args, **kwargs)
         text = "|".join([
-            name, str(treedef), repr(avals), repr(sorted(statics.items())), _environment_digest(),
+            name, str(treedef), repr(avals), static_text, _environment_digest(),
             str(jax.config.jax_enable_x64), jax.default_backend(), repr(sorted(compiler_options.items())),
             repr([os.environ.get(v) for v in _ENVIRONMENT]),
         ])
@@ -213,17 +232,18 @@ def _load(signature: str, compiler_options: dict):
         out_tree = _loads(record["out_tree"])
     except Exception:  # a missing, partial or foreign file: export again
         return None
-    program = (jax.jit(exported.call, compiler_options=compiler_options or None), out_tree)
+    program = (_compiled(exported, compiler_options), out_tree)
     _programs[signature] = program
     counts["loaded"] += 1
     return program
 
 
 def _export(signature: str, plain, treedef, statics: dict, leaves, compiler_options: dict):
-    """Export, save and compile the program of `signature`.  Where `jax.export` refuses it
-    (a host callback, e.g. a raising check) the refusal is saved too, so that later
-    processes take the plain path at once, and this process compiles the flat program it
-    has traced (JAX reuses the trace of `plain`): no second trace."""
+    """Export, save and compile the program of `signature`; None where `jax.export` refuses
+    it (a host callback, a custom call such as the register kernel's): the refusal is saved
+    too, so that later processes take the plain path at once (this one traces the program
+    again for it, once: compiling the flat program it has traced instead would store a
+    compilation that the plain path of later processes cannot find)."""
     out_trees = []
 
     def flat(*flat_leaves):
@@ -234,24 +254,29 @@ def _export(signature: str, plain, treedef, statics: dict, leaves, compiler_opti
 
     avals = [jax.typeof(leaf) for leaf in leaves]
     shapes = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=getattr(a, "weak_type", False)) for a in avals]
-    options = compiler_options or None
     try:
         exported = jax.export.export(jax.jit(flat))(*shapes)
         record = {"exported": exported.serialize(), "out_tree": _dumps(out_trees[-1])}
     except Exception:
-        if not out_trees:  # the trace failed: the plain call raises its error
-            return None
-        _refused.add(signature)
-        counts["refused"] += 1
-        _write(_directory / f"{signature}.refused", b"")
-        program = (jax.jit(flat, compiler_options=options), out_trees[-1])
-        _programs[signature] = program
-        return program
+        if out_trees:  # traced, then refused (else the trace failed: the plain call raises its error)
+            _refused.add(signature)
+            counts["refused"] += 1
+            _write(_directory / f"{signature}.refused", b"")
+        return None
     _write(_directory / f"{signature}.export", _dumps(record))
-    program = (jax.jit(exported.call, compiler_options=options), out_trees[-1])
+    program = (_compiled(exported, compiler_options), out_trees[-1])
     _programs[signature] = program
     counts["exported"] += 1
     return program
+
+
+def _compiled(exported, compiler_options: dict):
+    """The exported program as a `jax.jit` function on the default device.  Its placement is
+    fixed: left open, an argument already placed by an earlier program (committed) and one
+    made from NumPy (not) lowered to two programs, compiled twice (measured: the shape fit's
+    Jacobian, 13 s each)."""
+    device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    return jax.jit(exported.call, in_shardings=device, compiler_options=compiler_options or None)
 
 
 def _write(path: Path, data: bytes) -> None:

@@ -139,14 +139,24 @@ def _observe(args: ShootingArgs, options: BoundaryValueOptions, N, M0, xs, frame
     moments = M0[None] - jnp.cross(xs - args.start.position[None], N[None])
 
     def one(j):
-        # Save times outside the piece are clipped to its ends (repeated save times are
-        # allowed) and never selected below.
+        # From save point to save point, each interval a solve of its own (its end is a step
+        # value: the solve's accuracy and its derivatives), not one solve that saves at
+        # `saveat`: diffrax checks saved times with host callbacks, which JAX neither stores
+        # in the persistent compilation cache nor exports.  Save times outside the piece are
+        # clipped to its ends (repeated save times are allowed) and never selected below.
         local = jnp.clip(saveat - j * piece, 0.0, piece)
-        sol = options.integrate(
-            args.rod, frames[j].T @ N, frames[j].T @ moments[j], piece, args.ode_tol, frame0=frames[j], x0=xs[j],
-            saveat=local, interpolate=False,  # step values: the solve's accuracy, and their derivatives
-        )
-        return sol.x, sol.frame, sol.n, sol.m
+        start = (xs[j], frames[j], frames[j].T @ N, frames[j].T @ moments[j], jnp.zeros((), local.dtype))
+
+        def interval(state, s_next):
+            x, frame, n, m, s_prev = state
+            ds = s_next - s_prev
+            moves = ds > 0
+            sol = options.integrate(args.rod, n, m, jnp.where(moves, ds, 1.0), args.ode_tol, frame0=frame, x0=x)
+            ends = (sol.x[-1], sol.frame[-1], sol.n[-1], sol.m[-1])
+            state = tuple(jnp.where(moves, new, old) for new, old in zip(ends, state[:4])) + (s_next,)
+            return state, state[:4]
+
+        return jax.lax.scan(interval, start, local)[1]
 
     x, frame, n, m = per_piece(one, jnp.arange(k))
     which = jnp.clip(jnp.floor(saveat / piece).astype(jnp.int32), 0, k - 1)

@@ -415,8 +415,8 @@ def _jacobian_and_predictions_of(static, q, arrays):
 
 #: `jacobian_and_predictions` with `(model, param)` given as `split_arrays` halves, split
 #: once by a caller that evaluates it at many points `q` (a fit's steps).
-_split_jacobian_and_predictions = jit(_jacobian_and_predictions_of, static_argnums=0)
-_jacobian_and_predictions_once = jit(_jacobian_and_predictions_of, static_argnums=0, run_once=True)
+_split_jacobian_and_predictions = jit(_jacobian_and_predictions_of, static_argnums=0, trace_cache=True)
+_jacobian_and_predictions_once = jit(_jacobian_and_predictions_of, static_argnums=0, run_once=True, trace_cache=True)
 
 
 def _solver(solver, rtol, atol, learning_rate):

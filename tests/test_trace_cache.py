@@ -33,6 +33,21 @@ def scaled(module, x):
     return module.a * x
 
 
+class Doubler:
+    """A callable of the user's with a repr that stays the same when its code changes."""
+
+    def __repr__(self):
+        return "Doubler()"
+
+    def __call__(self, x):
+        return 2.0 * x
+
+
+@jit(trace_cache=True)
+def applied(function, x):
+    return function(x)
+
+
 @jit(trace_cache=True)
 def with_callback(x):
     return jax.pure_callback(lambda v: np.asarray(v) + 1.0, jax.ShapeDtypeStruct(x.shape, x.dtype), x)
@@ -95,6 +110,7 @@ def test_a_new_signature_is_a_new_program(cache):
 def test_what_it_cannot_vouch_for_takes_the_plain_path(cache):
     x = jnp.arange(3.0)
     assert float(scaled(Foreign(jnp.asarray(2.0)), x)[2]) == 4.0  # a foreign pytree node
+    assert float(applied(jax.tree_util.Partial(Doubler()), x)[2]) == 4.0  # foreign static data in JAX's node
     refused = _trace_cache.counts["refused"]
     assert float(with_callback(x)[0]) == 1.0  # a host callback: jax.export refuses it
     assert _trace_cache.counts["refused"] == refused + 1 and len(list(cache.glob("*.refused"))) == 1

@@ -110,37 +110,43 @@ def _environment_digest() -> str:
     return digest.hexdigest()
 
 
+def _vouched(value) -> bool:
+    """Whether `value` (static data) is built from types of `KNOWN_PACKAGES` only: the
+    digest sees their code, not that of a user's type (whose repr may not change with it)."""
+    if isinstance(value, (tuple, list, frozenset, set)):
+        return all(_vouched(item) for item in value)
+    if isinstance(value, dict):
+        return all(_vouched(key) and _vouched(item) for key, item in value.items())
+    kind = value if isinstance(value, type) else type(value)
+    return getattr(kind, "__module__", "").split(".")[0] in KNOWN_PACKAGES
+
+
 def _known_nodes(treedef) -> bool:
-    """Whether every node of `treedef` is a type of `KNOWN_PACKAGES` and its static data has
-    a text that names it the same way in every process (no object addresses)."""
+    """Whether every node of `treedef` and its static data are `_vouched` and have a text
+    that names them the same way in every process (no object addresses)."""
     if " at 0x" in str(treedef):
         return False
     stack = [treedef]
     while stack:
         node = stack.pop()
         data = node.node_data()
-        if data is not None:
-            kind = data[0]
-            if getattr(kind, "__module__", "").split(".")[0] not in KNOWN_PACKAGES:
-                return False
+        if data is not None and not (_vouched(data[0]) and _vouched(data[1])):
+            return False
         stack.extend(node.children())
     return True
 
 
 def _static_text(statics: dict) -> str | None:
     """The static arguments as text that names them the same way in every process, or None
-    where it cannot: an object address in a repr (a callable), or a type from outside
-    `KNOWN_PACKAGES`, also inside a `StaticHalf` (`_compile.split_arrays`)."""
+    where it cannot: an object address in a repr (a callable), or a value that is not
+    `_vouched`, also inside a `StaticHalf` (`_compile.split_arrays`)."""
     for value in statics.values():
-        values = [value]
         treedef = getattr(value, "treedef", None)
         if isinstance(treedef, jax.tree_util.PyTreeDef):
-            if not _known_nodes(treedef):
+            if not (_known_nodes(treedef) and _vouched(list(getattr(value, "leaves", ())))):
                 return None
-            values = list(getattr(value, "leaves", ()))
-        for item in values:
-            if type(item).__module__.split(".")[0] not in KNOWN_PACKAGES:
-                return None
+        elif not _vouched(value):
+            return None
     text = repr(sorted(statics.items()))
     return None if " at 0x" in text else text
 

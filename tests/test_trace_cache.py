@@ -123,6 +123,8 @@ def test_what_it_cannot_vouch_for_takes_the_plain_path(cache):
     out = jax.vmap(lambda v: program(v, (v[0], v[1]), power=2)["value"])(jnp.ones((3, 4)))
     np.testing.assert_allclose(np.asarray(out), 5.0)
     assert traces == [2]
+    with jax.default_device(jax.devices("cpu")[0]):  # the caller chose the device
+        assert float(program(x, (x[0], x[1]), power=2)["value"]) == 5.0
     assert list(cache.glob("*.export")) == []
 
 

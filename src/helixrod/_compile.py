@@ -146,7 +146,7 @@ def _with_options(plain, tuned, options, traced_once=None):
         if not _at_top_level():
             return plain(*args, **kwargs)
         fallback = tuned if options and _compiles_for_cpu() else plain
-        if traced_once is not None and _trace_cache.enabled():
+        if traced_once is not None and _compiles_for_cpu() and _trace_cache.enabled():
             name, static_argnames = traced_once
             return _trace_cache.cached_call(
                 plain, fallback, name, static_argnames, options if fallback is tuned else {}, args, kwargs

@@ -28,7 +28,8 @@ written) falls back to the plain call, silently.  A program that `jax.export` re
 a check that raises at run time, or a custom call such as the register kernel's) costs the
 first process of its signature a second trace; the refusal is saved, and later processes
 take the plain path at once.  Inside a caller's `jit`, `vmap` or `grad` the plain call is used
-(an exported program has no batching rule).  The files are safe to delete at any time.
+(an exported program has no batching rule), and so it is on a machine whose default backend
+is not the CPU.  The files are safe to delete at any time.
 """
 
 from __future__ import annotations
@@ -71,7 +72,10 @@ def enable(directory: str | os.PathLike | None) -> None:
 
 
 def enabled() -> bool:
-    return _directory is not None and _serialisation_available()
+    """On (`enable`), with `jax.export`'s serialisation available, and no default device
+    chosen by the caller (`jax.default_device`: an exported program is placed on the
+    first device of the default backend, `_compiled`)."""
+    return _directory is not None and jax.config.jax_default_device is None and _serialisation_available()
 
 
 @functools.cache

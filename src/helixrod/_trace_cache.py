@@ -24,12 +24,13 @@ are cached: a user's constitutive law, whose code the hash cannot see, always ta
 plain path, as does anything a hash cannot name the same way in two processes (a callable).
 
 Anything that goes wrong (an argument that is not an array, a file that cannot be read or
-written) falls back to the plain call, silently.  A program that `jax.export` refuses (a host callback, e.g.
-a check that raises at run time, or a custom call such as the register kernel's) costs the
-first process of its signature a second trace; the refusal is saved, and later processes
-take the plain path at once.  Inside a caller's `jit`, `vmap` or `grad` the plain call is used
-(an exported program has no batching rule), and so it is on a machine whose default backend
-is not the CPU.  The files are safe to delete at any time.
+written) falls back to the plain call, silently.  A program that `jax.export` refuses (a
+host callback, e.g. a check that raises at run time, or a custom call such as the register
+kernel's) costs the first process of its signature a second trace; the refusal is saved,
+and later processes take the plain path at once.  Inside a caller's `jit`, `vmap` or `grad`
+the plain call is used (an exported program has no batching rule), and so it is on a
+machine whose default backend is not the CPU.  The files (pickled records: the cache
+directory is trusted as JAX's own cache of executables is) are safe to delete at any time.
 """
 
 from __future__ import annotations

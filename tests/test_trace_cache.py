@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from helixrod import _trace_cache
-from helixrod._compile import jit, split_arrays
+from helixrod._compile import filter_jit, jit, split_arrays
 
 traces = []
 
@@ -59,6 +59,12 @@ def _halves(static, arrays):
 
 
 halves = jit(_halves, static_argnums=0, trace_cache=True)
+
+
+@filter_jit(trace_cache=True)
+def filtered(x, settings, power=2):
+    traces.append(("filtered", power))
+    return settings["scale"] * x**power + settings["offset"]
 
 
 @pytest.fixture
@@ -139,6 +145,20 @@ def test_a_static_half_is_part_of_the_signature(cache):
     arrays, static = split_arrays({"x": x, "scale": jnp.asarray(2.0), "power_of": jnp.sin})
     np.testing.assert_allclose(np.asarray(halves(static, arrays)), 2.0 * np.sin(np.arange(3.0)))
     assert len(list(cache.glob("*.export"))) == 2
+
+
+def test_a_filter_jit_program_keys_its_non_array_leaves(cache):
+    x = jnp.arange(3.0)
+    settings = {"scale": jnp.asarray(2.0), "offset": 1.0}  # a Python float: static, as filter_jit has it
+    traces.clear()
+    first = filtered(x, settings, power=3)
+    np.testing.assert_array_equal(np.asarray(first), 2.0 * np.arange(3.0) ** 3 + 1.0)
+    np.testing.assert_array_equal(np.asarray(filtered(x, {"scale": jnp.asarray(2.0), "offset": 5.0})), 2.0 * np.arange(3.0) ** 2 + 5.0)
+    assert len(list(cache.glob("*.export"))) == 2 and traces == [("filtered", 3), ("filtered", 2)]
+    _new_process()
+    later = filtered(x + 1.0, {"scale": jnp.asarray(3.0), "offset": 1.0}, power=3)
+    np.testing.assert_array_equal(np.asarray(later), 3.0 * np.arange(1.0, 4.0) ** 3 + 1.0)
+    assert len(traces) == 2 and len(list(cache.glob("*.export"))) == 2
 
 
 def test_a_damaged_file_is_exported_again(cache):

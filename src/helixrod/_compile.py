@@ -178,12 +178,14 @@ def _static_names(fun, jit_kwargs) -> tuple[str, ...]:
     return names + tuple(parameters[i] for i in numbers)
 
 
-def filter_jit(fun=None, /, **kwargs):
-    """`equinox.filter_jit` with `COMPILER_OPTIONS` at the top level; usable as `jit`."""
+def filter_jit(fun=None, /, *, trace_cache: bool = False, **kwargs):
+    """`equinox.filter_jit` with `COMPILER_OPTIONS` at the top level; usable as `jit`
+    (`trace_cache` as there)."""
     if fun is None:
-        return functools.partial(filter_jit, **kwargs)
+        return functools.partial(filter_jit, trace_cache=trace_cache, **kwargs)
     tuned = eqx.filter_jit(fun, compiler_options=COMPILER_OPTIONS, **kwargs)
-    return _with_options(eqx.filter_jit(fun, **kwargs), tuned, COMPILER_OPTIONS)
+    traced_once = (f"{fun.__module__}.{fun.__qualname__}", _trace_cache.FILTERED) if trace_cache else None
+    return _with_options(eqx.filter_jit(fun, **kwargs), tuned, COMPILER_OPTIONS, traced_once)
 
 
 class StaticHalf:

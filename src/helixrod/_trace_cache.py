@@ -44,6 +44,7 @@ import pickle
 from importlib import metadata
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import numpy as np
 
@@ -194,17 +195,59 @@ def _parameters(plain) -> inspect.Signature:
     return inspect.signature(plain)
 
 
-def cached_call(plain, fallback, name: str, static_argnames: tuple[str, ...], compiler_options: dict, args, kwargs):
-    """`plain(*args, **kwargs)` (a `jax.jit` function; top-level call) through the exported
-    program of its signature, compiled with `compiler_options`, when the cache holds one or
-    can make one; else `fallback(*args, **kwargs)` (the same program)."""
+#: `static_argnames` of `cached_call` for a program of `equinox.filter_jit`: every leaf that
+#: is not an array is static, as that function makes it.
+FILTERED = "filtered"
+
+
+def _split(arguments: dict, static_argnames):
+    """(dynamic arguments, static arguments) of a call: by name, or (`FILTERED`) the array
+    leaves against the rest, whose structure and leaves are one static entry."""
+    if static_argnames == FILTERED:
+        arrays, others = eqx.partition(arguments, eqx.is_array)
+        leaves, treedef = jax.tree.flatten(others)
+        return arrays, {FILTERED: _Filtered(treedef, tuple(leaves))}
+    statics = {key: value for key, value in arguments.items() if key in static_argnames}
+    return {key: value for key, value in arguments.items() if key not in static_argnames}, statics
+
+
+class _Filtered(tuple):
+    """The non-array half of a `FILTERED` call: (structure, leaves), hashable, with a text
+    that is the same in every process."""
+
+    def __new__(cls, treedef, leaves):
+        return super().__new__(cls, (treedef, leaves))
+
+    @property
+    def treedef(self):
+        return self[0]
+
+    @property
+    def leaves(self):
+        return self[1]
+
+    def __repr__(self):
+        return f"Filtered({self.treedef}, {self.leaves!r})"
+
+
+def _call(plain, dynamic: dict, statics: dict):
+    if FILTERED in statics:
+        filtered = statics[FILTERED]
+        return plain(**eqx.combine(dynamic, jax.tree.unflatten(filtered.treedef, filtered.leaves)))
+    return plain(**dynamic, **statics)
+
+
+def cached_call(plain, fallback, name: str, static_argnames, compiler_options: dict, args, kwargs):
+    """`plain(*args, **kwargs)` (a `jax.jit` function, or with `static_argnames` =
+    `FILTERED` an `equinox.filter_jit` one; top-level call) through the exported program of
+    its signature, compiled with `compiler_options`, when the cache holds one or can make
+    one; else `fallback(*args, **kwargs)` (the same program)."""
     try:
         bound = _parameters(plain).bind(*args, **kwargs)
     except (TypeError, ValueError):
         return fallback(*args, **kwargs)
     bound.apply_defaults()
-    statics = {key: value for key, value in bound.arguments.items() if key in static_argnames}
-    dynamic = {key: value for key, value in bound.arguments.items() if key not in static_argnames}
+    dynamic, statics = _split(dict(bound.arguments), static_argnames)
     leaves, treedef = jax.tree.flatten(dynamic)
     avals = tuple(_leaf_signature(leaf) for leaf in leaves)
     if any(a is None for a in avals):
@@ -261,7 +304,7 @@ def _export(signature: str, plain, treedef, statics: dict, leaves, compiler_opti
     out_trees = []
 
     def flat(*flat_leaves):
-        out = plain(**jax.tree.unflatten(treedef, flat_leaves), **statics)
+        out = _call(plain, jax.tree.unflatten(treedef, flat_leaves), statics)
         out_leaves, out_tree = jax.tree.flatten(out)
         out_trees.append(out_tree)
         return out_leaves

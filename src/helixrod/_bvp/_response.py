@@ -221,7 +221,7 @@ def _continuation_points(rod, length, kind, values, options: BoundaryValueOption
     return jax.lax.scan(step, carry, values)
 
 
-@filter_jit
+@filter_jit(trace_cache=True)
 def _curve(rod, length, kind, values, options: BoundaryValueOptions, mode: str, hints=None, with_bulk: bool = True, guess=None):
     """Solve every point of a curve in one compiled program; `values` `(n, 4)` = (F, M, h,
     Theta) per point.  `hints` `(n,)`: rotations near which to count whole turns

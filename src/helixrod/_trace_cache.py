@@ -3,16 +3,16 @@
 The persistent compilation cache (`_cache.py`) saves XLA's compilation, not JAX's tracing and
 lowering, which every process repeats before it can even look the program up: for the
 shooting solve behind `solve_boundary_value` that is ~2.3 s of Python.  With the cache on, a
-program made with `jit(..., trace_cache=True)` (`_compile.py`) is, at its first top-level
-call with a new signature, exported (`jax.export`: traced and lowered once, as a plain call
-would) and saved as StableHLO beside the compiled programs; a later process with the same
-signature deserialises it (milliseconds) and compiles it, which the persistent cache
-answers.  Measured (fresh processes): the warm first call of `solve_boundary_value`
+program made with `jit(..., trace_cache=True)` or `filter_jit(..., trace_cache=True)`
+(`_compile.py`) is, at its first top-level call with a new signature, exported
+(`jax.export`: traced and lowered once, as a plain call would) and saved as StableHLO beside
+the compiled programs; a later process with the same signature deserialises it
+(milliseconds) and compiles it, which the persistent cache answers.  Measured (fresh processes): the warm first call of `solve_boundary_value`
 3.7 -> 1.5 s on one core (`benchmarks/bench_first_calls.py`), 3.5 -> 1.5 s on 2 cores; of
 the shape fit of `benchmarks/bench_finite.py` (its Jacobian program traces in ~4.6 s)
 19.5-20.8 -> 2.1 s on 2 cores, with its saved points free of host callbacks (`_observe` in
-`_bvp/_solve.py`).  The export costs the cold process 0.2-0.4 s more than a plain trace
-and lowering.
+`_bvp/_solve.py`); of `force_extension` (8 points) 7.3-7.8 -> 4.3-4.7 s on 2 cores.  The
+export costs the cold process 0.2-0.4 s more than a plain trace and lowering.
 
 What makes a signature, and why a stale file cannot be used: the file's name is a hash of
 the program's name, the structure of its arguments (every pytree node and its static data,

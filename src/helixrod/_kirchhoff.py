@@ -332,7 +332,7 @@ def solve_static(
     return raise_if_failed(solution, solution.result, "solve_static") if throw else solution
 
 
-@filter_jit
+@filter_jit(trace_cache=True)
 def _integrate(rod, n0, m0, length, frame0, x0, ts, rtol, atol, *, solver, steps, max_steps, adjoint, dense, outputs):
     """`solve_static` after its checks, as one program of its own (an eager call is one
     dispatch, compiled with helixrod's options)."""

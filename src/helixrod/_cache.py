@@ -8,10 +8,9 @@ does not store executables that contain host callbacks, so a program with a rais
 runtime check (`equinox.error_if`) is compiled again in every process.  The tracing and
 lowering that precede the lookup are not cached by JAX; for helixrod's largest programs
 (`solve_static`'s, the shooting solve of `solve_boundary_value`, the fits' Jacobian
-program, the response curves' program) the same
-directory also keeps their exported form (`_trace_cache.py`), so that a later process
-skips them too.  The cache is a
-directory of files that is safe to delete at any time.
+program, the response curves' program) the same directory also keeps their exported form
+(`_trace_cache.py`), so that a later process skips them too.  The cache is a directory of
+files that is safe to delete at any time.
 """
 
 from __future__ import annotations

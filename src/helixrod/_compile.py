@@ -136,8 +136,8 @@ def _compiles_for_cpu() -> bool:
 
 def _with_options(plain, tuned, options, traced_once=None):
     """`tuned` (compiled with `options`) at the top level on the CPU, else `plain`; with
-    `traced_once` = (name, static argument names), a top-level call goes through the trace
-    cache (`_trace_cache.py`) when it is on."""
+    `traced_once` = (name, static argument names or `split_arrays`), a top-level call on the
+    CPU goes through the trace cache (`_trace_cache.py`) when it is on."""
     if not options and traced_once is None:
         return plain
 
@@ -145,8 +145,9 @@ def _with_options(plain, tuned, options, traced_once=None):
     def call(*args, **kwargs):
         if not _at_top_level():
             return plain(*args, **kwargs)
-        fallback = tuned if options and _compiles_for_cpu() else plain
-        if traced_once is not None and _compiles_for_cpu() and _trace_cache.enabled():
+        cpu = _compiles_for_cpu()
+        fallback = tuned if options and cpu else plain
+        if traced_once is not None and cpu and _trace_cache.enabled():
             name, static_argnames = traced_once
             return _trace_cache.cached_call(
                 plain, fallback, name, static_argnames, options if fallback is tuned else {}, args, kwargs
@@ -184,7 +185,7 @@ def filter_jit(fun=None, /, *, trace_cache: bool = False, **kwargs):
     if fun is None:
         return functools.partial(filter_jit, trace_cache=trace_cache, **kwargs)
     tuned = eqx.filter_jit(fun, compiler_options=COMPILER_OPTIONS, **kwargs)
-    traced_once = (f"{fun.__module__}.{fun.__qualname__}", _trace_cache.FILTERED) if trace_cache else None
+    traced_once = (f"{fun.__module__}.{fun.__qualname__}", split_arrays) if trace_cache else None
     return _with_options(eqx.filter_jit(fun, **kwargs), tuned, COMPILER_OPTIONS, traced_once)
 
 

@@ -45,7 +45,6 @@ import pickle
 from importlib import metadata
 from pathlib import Path
 
-import equinox as eqx
 import jax
 import numpy as np
 
@@ -196,59 +195,42 @@ def _parameters(plain) -> inspect.Signature:
     return inspect.signature(plain)
 
 
-#: `static_argnames` of `cached_call` for a program of `equinox.filter_jit`: every leaf that
-#: is not an array is static, as that function makes it.
+#: The entry of the static arguments that holds the static half of a call split by a
+#: function (`cached_call`'s `static_argnames` a callable).
 FILTERED = "filtered"
 
 
 def _split(arguments: dict, static_argnames):
-    """(dynamic arguments, static arguments) of a call: by name, or (`FILTERED`) the array
-    leaves against the rest, whose structure and leaves are one static entry."""
-    if static_argnames == FILTERED:
-        arrays, others = eqx.partition(arguments, eqx.is_array)
-        leaves, treedef = jax.tree.flatten(others)
-        return arrays, {FILTERED: _Filtered(treedef, tuple(leaves))}
+    """(dynamic arguments, static arguments) of a call: by name, or by the function
+    `static_argnames` (`_compile.split_arrays` for an `equinox.filter_jit` program: the
+    array leaves against the rest), whose static half is the one entry `FILTERED`."""
+    if callable(static_argnames):
+        arrays, static = static_argnames(arguments)
+        return arrays, {FILTERED: static}
     statics = {key: value for key, value in arguments.items() if key in static_argnames}
     return {key: value for key, value in arguments.items() if key not in static_argnames}, statics
 
 
-class _Filtered(tuple):
-    """The non-array half of a `FILTERED` call: (structure, leaves), hashable, with a text
-    that is the same in every process."""
-
-    def __new__(cls, treedef, leaves):
-        return super().__new__(cls, (treedef, leaves))
-
-    @property
-    def treedef(self):
-        return self[0]
-
-    @property
-    def leaves(self):
-        return self[1]
-
-    def __repr__(self):
-        return f"Filtered({self.treedef}, {self.leaves!r})"
-
-
 def _call(plain, dynamic: dict, statics: dict):
     if FILTERED in statics:
-        filtered = statics[FILTERED]
-        return plain(**eqx.combine(dynamic, jax.tree.unflatten(filtered.treedef, filtered.leaves)))
+        return plain(**statics[FILTERED].combine(dynamic))
     return plain(**dynamic, **statics)
 
 
 def cached_call(plain, fallback, name: str, static_argnames, compiler_options: dict, args, kwargs):
-    """`plain(*args, **kwargs)` (a `jax.jit` function, or with `static_argnames` =
-    `FILTERED` an `equinox.filter_jit` one; top-level call) through the exported program of
-    its signature, compiled with `compiler_options`, when the cache holds one or can make
-    one; else `fallback(*args, **kwargs)` (the same program)."""
+    """`plain(*args, **kwargs)` (a `jax.jit` function, or with `static_argnames` a function
+    that splits the arguments, an `equinox.filter_jit` one; top-level call) through the
+    exported program of its signature, compiled with `compiler_options`, when the cache
+    holds one or can make one; else `fallback(*args, **kwargs)` (the same program)."""
     try:
         bound = _parameters(plain).bind(*args, **kwargs)
     except (TypeError, ValueError):
         return fallback(*args, **kwargs)
     bound.apply_defaults()
-    dynamic, statics = _split(dict(bound.arguments), static_argnames)
+    try:
+        dynamic, statics = _split(dict(bound.arguments), static_argnames)
+    except TypeError:  # an unhashable static leaf: the plain call says what it makes of it
+        return fallback(*args, **kwargs)
     leaves, treedef = jax.tree.flatten(dynamic)
     avals = tuple(_leaf_signature(leaf) for leaf in leaves)
     if any(a is None for a in avals):

@@ -127,6 +127,11 @@ def test_summary_save_and_load(noisy, tmp_path):
     np.testing.assert_array_equal(back.predicted["force"], fit.predicted["force"])
     assert back.identifiability.to_dict() == fit.identifiability.to_dict()
     assert repr(back.rod) == repr(fit.rod) and (back.aic, back.bic) == (fit.aic, fit.bic)
+    # A fit's numbers are host values (NumPy), fitted or read back; its rod is a JAX rod.
+    for f in (fit, back):
+        assert all(isinstance(a, np.ndarray) for a in (f.covariance, f.correlation, f.residuals, f.start_costs))
+        assert all(isinstance(v, np.float64) for v in (*f.params.values(), *f.stderr.values()))
+        assert isinstance(f.identifiability.singular_values, np.ndarray) and isinstance(f.rod.K1, jax.Array)
     with pytest.raises(ValueError, match="propagate needs a fit from fit_stiffness"):
         back.propagate(lambda rod, p: rod.K1)
     (tmp_path / "other.json").write_text('{"a": 1}')

@@ -98,6 +98,11 @@ _OPTIONAL = ("kappa_sigma", "tau_sigma", "kappa_tau_correlation", "register", "r
 _MAY_BE_EMPTY = ("force", "moment", "force_sigma", "moment_sigma")
 
 
+def measured(values: Array) -> Array:
+    """The mask of the measured entries of a data column (a missing value is NaN)."""
+    return ~jnp.isnan(values)
+
+
 class HelixData(eqx.Module):
     """Measured uniform helices: axial force and moment at given curvature and torsion.
 
@@ -259,12 +264,12 @@ class HelixData(eqx.Module):
     @property
     def force_observed(self) -> Array:
         """Mask `(n,)` of the points whose force was measured."""
-        return ~jnp.isnan(self.force)
+        return measured(self.force)
 
     @property
     def moment_observed(self) -> Array:
         """Mask `(n,)` of the points whose moment was measured."""
-        return ~jnp.isnan(self.moment)
+        return measured(self.moment)
 
     @property
     def observed(self) -> tuple[str, ...]:

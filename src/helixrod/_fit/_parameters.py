@@ -16,10 +16,10 @@ from collections.abc import Mapping
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array
+from jaxtyping import Array, ArrayLike
 
 from .._misc import float_dtype, random_normal
-from .._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
+from .._rod import PARAMETER_NAMES, Rod, check_rod_vector, rod_from_vector, rod_vector
 
 STIFFNESS_NAMES = PARAMETER_NAMES[:5]
 TWIST_NAMES = PARAMETER_NAMES[5:]
@@ -48,12 +48,12 @@ class Parameterisation(eqx.Module):
     free: tuple[str, ...] = eqx.field(static=True)
     isotropic: bool = eqx.field(static=True)  # K2 = K1 (tied: K2 is neither free nor fixed)
     fixed_names: tuple[str, ...] = eqx.field(static=True)
-    fixed_values: Array
-    k_scale: Array
-    u_scale: Array
+    fixed_values: ArrayLike
+    k_scale: ArrayLike
+    u_scale: ArrayLike
     extra: tuple[ModelParameter, ...] = eqx.field(static=True)
     extra_free: tuple[str, ...] = eqx.field(static=True)
-    extra_values: Array  # every model parameter: the fixed values, or the start of free ones
+    extra_values: ArrayLike  # every model parameter: the fixed values, or the start of free ones
 
     def __init__(
         self,
@@ -68,14 +68,16 @@ class Parameterisation(eqx.Module):
         self.isotropic = bool(isotropic) and "K1" not in fixed
         self.free = tuple(n for n in PARAMETER_NAMES if n not in fixed and not (self.isotropic and n == "K2"))
         self.fixed_names = tuple(n for n in PARAMETER_NAMES if n in fixed)
-        self.fixed_values = jnp.asarray([float(fixed.get(n, 0.0)) for n in PARAMETER_NAMES], dtype)
-        self.k_scale = jnp.asarray(k_scale, dtype)
-        self.u_scale = jnp.asarray(u_scale, dtype)
+        # NumPy: read on the host by every fit step outside the compiled programs, and
+        # placed on the device by the call of each program (four eager transfers a fit less).
+        self.fixed_values = np.asarray([float(fixed.get(n, 0.0)) for n in PARAMETER_NAMES], dtype)
+        self.k_scale = np.asarray(k_scale, dtype)
+        self.u_scale = np.asarray(u_scale, dtype)
         self.extra = tuple(extra)
         self.extra_free = tuple(e.name for e in self.extra if e.name not in fixed)
         values = {} if extra_values is None else dict(extra_values)
         values.update({k: v for k, v in fixed.items() if k in {e.name for e in self.extra}})
-        self.extra_values = jnp.asarray([float(values.get(e.name, e.start)) for e in self.extra], dtype)
+        self.extra_values = np.asarray([float(values.get(e.name, e.start)) for e in self.extra], dtype)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -287,5 +289,5 @@ def start_vector(init, fixed: dict[str, float], default, model_names=()) -> np.n
         raise ValueError("init must be a Rod, a mapping of parameter values, or None")
     p.update({n: v for n, v in fixed.items() if n in p})
     v = np.array([p[n] for n in PARAMETER_NAMES], float)
-    rod_from_vector(v, checked=True)  # raises the Rod's error for a stiffness that is not positive definite
+    check_rod_vector(v)
     return v

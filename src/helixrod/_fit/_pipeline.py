@@ -67,24 +67,26 @@ class StiffnessFit(eqx.Module):
     shapes: `points`; the linear fit: `moment` vectors.  Convergence: `result` (a `RESULTS`
     code of the best start), `ok`, `message`, `n_steps` (of the best start), `n_starts`,
     `n_agree` (starts that reached the best minimum, up to the symmetries), `start_costs`.
-    `identifiability`: see `Identifiability`.  `method`: the solver's name.
+    `identifiability`: see `Identifiability`.  `method`: the solver's name.  The numbers
+    are host values, computed once per fit: NumPy arrays and `float64` scalars (the rod's
+    are JAX arrays, as every `Rod`'s).
     """
 
     rod: Rod
     names: tuple[str, ...] = eqx.field(static=True)
     params: dict
     stderr: dict
-    covariance: Float[Array, "p p"]
-    correlation: Float[Array, "p p"]
+    covariance: Float[np.ndarray, "p p"]
+    correlation: Float[np.ndarray, "p p"]
     cost: float
     chi2_reduced: float
-    residuals: Float[Array, " m"]
+    residuals: Float[np.ndarray, " m"]
     predicted: dict
     result: RESULTS
     n_steps: int
     n_starts: int
     n_agree: int
-    start_costs: Array
+    start_costs: np.ndarray
     identifiability: Identifiability
     method: str = eqx.field(static=True)
     absolute_sigma: bool = eqx.field(static=True)
@@ -232,23 +234,23 @@ class StiffnessFit(eqx.Module):
         if not isinstance(record, dict) or record.get("format") != SAVE_FORMAT:
             raise ValueError(f"StiffnessFit.load: {path} is not a fit written by StiffnessFit.save (no format {SAVE_FORMAT!r})")
         names = tuple(record["names"])
-        rod = rod_from_vector(jnp.asarray([record["rod"][n] for n in PARAMETER_NAMES]), checked=True)
+        rod = rod_from_vector(np.array([record["rod"][n] for n in PARAMETER_NAMES], float), checked=True)
         return cls(
             rod=rod,
             names=names,
-            params={n: jnp.asarray(record["params"][n]) for n in names},
-            stderr={n: jnp.asarray(record["stderr"][n]) for n in names},
-            covariance=jnp.asarray(record["covariance"], float).reshape(len(names), len(names)),
-            correlation=jnp.asarray(record["correlation"], float).reshape(len(names), len(names)),
-            cost=jnp.asarray(record["cost"]),
-            chi2_reduced=jnp.asarray(record["chi2_reduced"]),
-            residuals=jnp.asarray(record["residuals"], float),
-            predicted={k: jnp.asarray(v) for k, v in record["predicted"].items()},
+            params={n: np.float64(record["params"][n]) for n in names},
+            stderr={n: np.float64(record["stderr"][n]) for n in names},
+            covariance=np.asarray(record["covariance"], float).reshape(len(names), len(names)),
+            correlation=np.asarray(record["correlation"], float).reshape(len(names), len(names)),
+            cost=float(record["cost"]),
+            chi2_reduced=float(record["chi2_reduced"]),
+            residuals=np.asarray(record["residuals"], float),
+            predicted={k: np.asarray(v) for k, v in record["predicted"].items()},
             result=result_from_name(record["result"]),
             n_steps=int(record["n_steps"]),
             n_starts=int(record["n_starts"]),
             n_agree=int(record["n_agree"]),
-            start_costs=jnp.asarray(record["start_costs"], float),
+            start_costs=np.asarray(record["start_costs"], float),
             identifiability=Identifiability.from_dict(names, record["identifiability"]),
             method=record["method"],
             absolute_sigma=bool(record["absolute_sigma"]),
@@ -285,18 +287,18 @@ def assemble(
 ) -> StiffnessFit:
     """A `StiffnessFit` from the error analysis at the fitted values (the one constructor of
     the fits of this package)."""
-    start_costs = jnp.asarray([analysis.cost] if start_costs is None else start_costs)
+    start_costs = np.asarray([analysis.cost] if start_costs is None else start_costs, float)
     return StiffnessFit(
         rod=rod,
         names=tuple(values),
-        params={n: jnp.asarray(v) for n, v in values.items()},
+        params={n: np.float64(v) for n, v in values.items()},
         stderr=analysis.stderr,
         covariance=analysis.covariance,
         correlation=analysis.correlation,
         cost=analysis.cost,
         chi2_reduced=analysis.chi2_reduced,
-        residuals=jnp.asarray(residuals),
-        predicted={k: jnp.asarray(v) for k, v in predicted.items()},
+        residuals=np.asarray(residuals),
+        predicted={k: np.asarray(v) for k, v in predicted.items()},
         result=result,
         n_steps=int(n_steps),
         n_starts=int(start_costs.shape[0]),
@@ -595,7 +597,7 @@ def fit_stiffness(
         if stepwise:
             solved = _stepwise_multistart(jnp.asarray(z0s), model, param, solver, int(max_steps), report)
         elif adaptive:
-            solved = _adaptive_multistart(jnp.asarray(z0s), model, param, solver, int(max_steps), batching, report)
+            solved = _adaptive_multistart(z0s, model, param, solver, int(max_steps), batching, report)
             report.advance(n_starts - report.done)  # the starts left out by the early stop
         elif report.shown:
             solve = lambda _, batch: (None, _multistart(batch, model, param, solver, int(max_steps), batching))  # noqa: E731
@@ -650,7 +652,7 @@ SCREEN_STEPS = 48
 
 
 def _adaptive_multistart(z0s, model, param, solver, max_steps: int, batching: str, report):
-    """The starts `z0s` solved in batches with early stopping (`ADAPTIVE_BATCH`,
+    """The starts `z0s` (NumPy) solved in batches with early stopping (`ADAPTIVE_BATCH`,
     `SCREEN_STEPS`, `ADAPTIVE_AGREE`): what `_multistart` returns, of the starts solved.
     A start cut short by the screening budget counts where it agrees with the best; the
     best start, if cut short, is then solved on from where it stopped with the full budget."""
@@ -673,7 +675,7 @@ def _adaptive_multistart(z0s, model, param, solver, max_steps: int, batching: st
             return _multistart(z0s, model, param, solver, max_steps, batching)
         return solved
     if screen < max_steps and not succeeded(solved[2])[best]:
-        z, cost, result, steps, p, q = _multistart(jnp.asarray(solved[0][best:best + 1]), model, param, solver, max_steps, batching)
+        z, cost, result, steps, p, q = _multistart(solved[0][best:best + 1], model, param, solver, max_steps, batching)
         # LM accepts steps at round-off, so the same minimum may come back a little higher.
         if bool(np.isfinite(cost[0])) and cost[0] <= solved[1][best] + 1e-6 * (1 + solved[1][best]):
             update = (z, cost, result, steps + solved[3][best], p, q)

@@ -6,9 +6,8 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 
 import equinox as eqx
-import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import ArrayLike, Float
 
 from .._misc import chi2_survival
 
@@ -34,8 +33,8 @@ class Identifiability(eqx.Module):
     constraining the error analysis."""
 
     names: tuple[str, ...] = eqx.field(static=True)
-    scales: Float[Array, " p"]
-    singular_values: Float[Array, " p"]
+    scales: Float[np.ndarray, " p"]
+    singular_values: Float[np.ndarray, " p"]
     condition_number: float
     rank: int
     weak: tuple = eqx.field(static=True)
@@ -67,8 +66,8 @@ class Identifiability(eqx.Module):
         """The report of `to_dict` back (for a saved fit)."""
         return cls(
             names=tuple(names),
-            scales=jnp.asarray(d["scales"], float),
-            singular_values=jnp.asarray(d["singular_values"], float),
+            scales=np.asarray(d["scales"], float),
+            singular_values=np.asarray(d["singular_values"], float),
             condition_number=float(d["condition_number"]),
             rank=int(d["rank"]),
             weak=tuple(tuple(w.items()) for w in d["weak"]),
@@ -87,8 +86,8 @@ class ErrorAnalysis(eqx.Module):
     direction), `cost` $= \\tfrac12\\sum r^2$, `chi2_reduced` $= 2\\,$cost$/(m - \\mathrm{rank})$,
     and the `identifiability` report."""
 
-    covariance: Float[Array, "p p"]
-    correlation: Float[Array, "p p"]
+    covariance: Float[np.ndarray, "p p"]
+    correlation: Float[np.ndarray, "p p"]
     stderr: dict
     cost: float
     chi2_reduced: float
@@ -211,8 +210,8 @@ def error_analysis(
             )
     ident = Identifiability(
         names=names,
-        scales=jnp.asarray(scales),
-        singular_values=jnp.asarray(np.concatenate([np.full(n_constrained, np.inf), s])),
+        scales=scales,
+        singular_values=np.concatenate([np.full(n_constrained, np.inf), s]),
         condition_number=(float(s[0] / s[-1]) if s[-1] > 0 else float("inf")) if s.size else 1.0,
         rank=rank,
         weak=tuple(weak),
@@ -224,9 +223,9 @@ def error_analysis(
         determined_stderr=tuple(determined_err),
     )
     return ErrorAnalysis(
-        covariance=jnp.asarray(cov),
-        correlation=jnp.asarray(corr),
-        stderr={n: jnp.asarray(v) for n, v in zip(names, stderr)},
+        covariance=cov,
+        correlation=corr,
+        stderr=dict(zip(names, stderr)),
         cost=cost,
         chi2_reduced=chi2_reduced,
         identifiability=ident,

@@ -238,8 +238,10 @@ def test_cpu_chunks_equal_one_pass(rng, monkeypatch):
 def test_chunked_linearisation_keeps_only_the_inputs(rng, monkeypatch):
     """Linearised over a chunked batch (a fit's Levenberg--Marquardt step), each chunk is
     recomputed in the linear map instead of keeping its intermediates: what the
-    linearisation stores is the inputs (kappa, tau: 2 numbers per point), where one pass
-    stores ~60 per point (a 1e6-helix fit's memory)."""
+    linearisation stores is the inputs (kappa, tau: 2 numbers per point; with the compiled
+    kernel of the wrench, whose derivative rule is the chunked program, twice: the caller's
+    arrays and the flat copies the rule holds), where one pass stores ~60 per point (a
+    1e6-helix fit's memory)."""
     from helixrod import _equilibria
 
     n = 4096
@@ -257,7 +259,7 @@ def test_chunked_linearisation_keeps_only_the_inputs(rng, monkeypatch):
         stored[limit] = sum(x.nbytes for x in jax.tree.leaves(linear)) / (n * 8)
         tangent = jax.tree.map(jnp.ones_like, rod)
         np.testing.assert_allclose(linear(tangent), jax.jvp(force, (rod,), (tangent,))[1], rtol=1e-12, atol=1e-12)
-    assert stored[512] < 2.1 and stored[10**9] > 20
+    assert stored[512] < 4.1 and stored[10**9] > 20
 
 
 def test_python_lists_are_arrays():

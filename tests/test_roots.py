@@ -298,3 +298,53 @@ def test_second_derivatives_match_central_differences():
         h = 1e-5
         fd = np.stack([(gradient(x0.at[i].add(h)) - gradient(x0.at[i].add(-h))) / (2 * h) for i in range(3)])
         np.testing.assert_allclose(hessian, fd, rtol=1e-6, atol=1e-7)
+
+
+def test_wrench_kernel_matches_the_xla_program(rng):
+    """`helix_equilibria` asked for fields among phi, valid, force, moment and stable of
+    one float64 rod runs the compiled kernel of the wrench (one pass, the registers and
+    their wrench per block); it returns what XLA's program returns, to rounding: coupled
+    rods with intrinsic curvature, an isotropic rod (a continuum at tau = uhat3), kappa = 0,
+    negative and non-finite inputs, a tiny kappa; under `jax.vmap` over rods and over
+    points; and derivatives through it are XLA's program's (the kernel has none)."""
+    import helixrod as hr
+    from helixrod import _equilibria
+
+    wrench = ("phi", "valid", "force", "moment", "stable")
+    n = 3000
+    kappa, tau = rng.uniform(0.01, 3.0, n), rng.uniform(-3.0, 3.0, n)
+    kappa[:8] = [0.0, -1.0, np.nan, np.inf, 0.5, 1.0, 1e-200, 0.7]
+    tau[:8] = [1.0, 1.0, 1.0, 1.0, np.nan, np.inf, 0.3, 0.2]
+    kappa, tau = jnp.asarray(kappa), jnp.asarray(tau)
+    rods = [
+        hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.2, -0.1)),
+        hr.Rod(0.7, 2.1, 1.3, K13=-0.3, K23=0.6, uhat=(-0.4, 0.9, 0.5)),
+        hr.Rod(1.0, 1.0, 1.0, uhat=(0.0, 0.0, 0.2)),
+    ]
+    xla = jax.jit(lambda rod, k, t: _equilibria._fields_in_xla(rod, k, t, wrench))
+    for rod in rods:
+        assert _equilibria._wrench_kernel(rod, kappa, wrench) is not None
+        ours, theirs = hr.helix_equilibria(rod, kappa, tau, fields=wrench), xla(rod, kappa, tau)
+        np.testing.assert_array_equal(ours.valid, theirs.valid)
+        np.testing.assert_array_equal(ours.stable, theirs.stable)
+        assert ours.u is None and ours.energy is None
+        for name in ("force", "moment"):
+            np.testing.assert_allclose(getattr(ours, name), getattr(theirs, name), rtol=1e-12, atol=1e-12)
+        assert np.nanmax(angular_distance(np.asarray(ours.phi), np.asarray(theirs.phi))) < 1e-13
+    continuum = hr.helix_equilibria(rods[2], 0.5, 0.2, fields=wrench)
+    assert np.asarray(continuum.valid).tolist() == [True, False, False, False] and not np.asarray(continuum.stable).any()
+    # vmap over rods (the kernel's rows) and over points.
+    params = jnp.asarray([[r.K1, r.K2, r.K3, r.K13, r.K23, *r.uhat] for r in rods])
+    as_rod = lambda p: hr.Rod(p[0], p[1], p[2], p[3], p[4], p[5:8])  # noqa: E731
+    mapped = jax.vmap(lambda p: hr.helix_equilibria(as_rod(p), kappa, tau, fields=wrench).force)(params)
+    for row, rod in zip(np.asarray(mapped), rods):
+        np.testing.assert_allclose(row, xla(rod, kappa, tau).force, rtol=1e-12, atol=1e-12)
+    points = jax.vmap(lambda k, t: hr.helix_equilibria(rods[0], k, t, fields=wrench).moment)(kappa[:50], tau[:50])
+    np.testing.assert_allclose(points, xla(rods[0], kappa[:50], tau[:50]).moment, rtol=1e-12, atol=1e-12)
+    # Derivatives: those of XLA's program.
+    k, t = kappa[8:200], tau[8:200]
+    loss = lambda fields_of: lambda rod: jnp.nansum(fields_of(rod).force * fields_of(rod).moment)  # noqa: E731
+    ours = jax.grad(loss(lambda rod: hr.helix_equilibria(rod, k, t, fields=wrench)))(rods[1])
+    theirs = jax.grad(loss(lambda rod: _equilibria._fields_in_xla(rod, k, t, wrench)))(rods[1])
+    for a, b in zip(jax.tree.leaves(ours), jax.tree.leaves(theirs)):
+        np.testing.assert_allclose(a, b, rtol=1e-11)

@@ -22,7 +22,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._compile import jit
 from ._roots import cpu_kernel, register_roots
-from ._rod import Rod
+from ._rod import Rod, rod_vector
 
 
 class HelixEquilibria(eqx.Module):
@@ -119,7 +119,11 @@ def helix_equilibria(rod: Rod, kappa: ArrayLike, tau: ArrayLike, *, fields: Sequ
     chunked loop a CPU runs over more than 32 768 points (262 144 with the compiled
     register kernel, `pip install "helixrod[numba]"`), where asking for fewer fields
     is what makes it fast (`phi, force, moment, stable` of 10^6 points: about 1.5x) and
-    keeps the memory of the rest from being allocated.  Unknown names: `ValueError`.
+    keeps the memory of the rest from being allocated.  With the compiled kernel, fields
+    among `phi, valid, force, moment, stable` of one float64 rod on a CPU are computed by
+    it in one pass over the points, at any size (about 2x faster than XLA's program at
+    1e4 ... 1e6 points); their derivatives, and every other field, by XLA's program.
+    Unknown names: `ValueError`.
 
     **Example**
 
@@ -151,7 +155,12 @@ def helix_equilibria(rod: Rod, kappa: ArrayLike, tau: ArrayLike, *, fields: Sequ
         )
     on_cpu = jax.default_backend() == "cpu"
     limit = _KERNEL_CHUNK if on_cpu and dtype == jnp.float64 and cpu_kernel() is not None else _CPU_CHUNK
-    if size > limit and on_cpu:
+    chunked = size > limit and on_cpu
+    if _wrench_kernel(rod, kappa, fields) is not None:
+        # The kernel runs over any number of points in cache-sized blocks of its own; the
+        # chunks are for the derivatives, which XLA's program computes.
+        eq = _wrench_by_kernel(rod, kappa, tau, fields=fields, limit=limit if chunked else None)
+    elif chunked:
         eq = _equilibria_chunked(rod, kappa, tau, limit=limit, fields=fields)
     else:
         eq = _equilibria_flat(rod, kappa, tau, fields)
@@ -167,7 +176,8 @@ _CPU_CHUNK = 32768
 # With the compiled register kernel (`_roots.cpu_kernel`), whose own blocks stay in cache,
 # only the fields are left to XLA: 1e5 points in one pass took 40-55 ns a point against
 # 87-96 in chunks of 32768 (2 cores); from 1e6 on, chunks of 32768 ... 262144 were within
-# the machine's noise of each other and of one pass.
+# the machine's noise of each other and of one pass.  (The kernel of the wrench,
+# `_wrench_by_kernel`, needs no chunks; its derivatives, XLA's program, use these.)
 _KERNEL_CHUNK = 262144
 
 
@@ -179,8 +189,8 @@ def _equilibria_chunked(rod: Rod, kappa, tau, limit: int, fields: tuple[str, ...
     it (XLA does not remove a while loop's unused results): hence `fields`."""
     size = kappa.shape[0]
     if rod.K1.ndim:
-        return _map_chunks(lambda r, k, t: _equilibria_flat(r, k, t, fields), (rod, kappa, tau), size, limit)
-    return _map_chunks(lambda k, t: _equilibria_flat(rod, k, t, fields), (kappa, tau), size, limit)
+        return _map_chunks(lambda r, k, t: _fields_in_xla(r, k, t, fields), (rod, kappa, tau), size, limit)
+    return _map_chunks(lambda k, t: _fields_in_xla(rod, k, t, fields), (kappa, tau), size, limit)
 
 
 def _map_chunks(fn, args, size, limit):
@@ -209,8 +219,56 @@ def _map_chunks(fn, args, size, limit):
 @jit(static_argnames="fields")
 def _equilibria_flat(rod: Rod, kappa, tau, fields: tuple[str, ...]) -> HelixEquilibria:
     """`helix_equilibria` on flat `kappa`, `tau` of shape (n,) (rod unbatched or (n,)),
-    with only `fields` (and `valid`) set; one program (an eager call is one dispatch, and
-    one entry of the persistent cache)."""
+    with only `fields` (and `valid`) set, by XLA's program; one program (an eager call is
+    one dispatch, and one entry of the persistent cache)."""
+    return _fields_in_xla(rod, kappa, tau, fields)
+
+
+def _wrench_kernel(rod: Rod, kappa, fields: tuple[str, ...]):
+    """The compiled CPU kernel (`_roots.cpu_kernel`) where it computes what is asked for:
+    fields among its `WRENCH_FIELDS` (phi, valid, force, moment, stable), of float64
+    helices of one `Rod` (unbatched, or batched by `jax.vmap`), on a CPU; else None."""
+    if jax.default_backend() != "cpu" or jnp.result_type(kappa) != jnp.float64 or not isinstance(rod, Rod):
+        return None
+    if rod.K1.ndim != 0 or math.prod(jnp.shape(kappa)) == 0:
+        return None
+    kernel = cpu_kernel()
+    return kernel if kernel is not None and set(fields) <= set(kernel.WRENCH_FIELDS) else None
+
+
+def _wrench_by_kernel(rod: Rod, kappa, tau, fields: tuple[str, ...], limit: int | None) -> HelixEquilibria:
+    """`_equilibria_flat`'s values from the compiled kernel (`_wrench_of`): one pass over
+    the points, the registers and their wrench in each cache-sized block, where XLA's
+    program makes a dozen passes over arrays of the points.  Their derivatives are those of
+    XLA's program (the kernel has none), in chunks of `limit` points as
+    `_equilibria_chunked` (None: one pass): under `jax.jvp`, `jax.grad` and the fits'
+    Jacobians the values come from XLA's program too, equal to rounding.  (Not itself
+    jitted: a linearisation through a jitted rule kept copies of the inputs besides them.)"""
+
+    @jax.custom_jvp
+    def by_kernel(rod, kappa, tau):
+        return _wrench_of(rod, kappa, tau, fields)
+
+    @by_kernel.defjvp
+    def by_kernel_jvp(primals, tangents):
+        if limit is None:
+            return jax.jvp(lambda r, k, t: _equilibria_flat(r, k, t, fields), primals, tangents)
+        chunked = jax.checkpoint(lambda r, k, t: _equilibria_chunked(r, k, t, limit=limit, fields=fields))
+        return jax.jvp(chunked, primals, tangents)
+
+    return by_kernel(rod, kappa, tau)
+
+
+@jit(static_argnames="fields")
+def _wrench_of(rod: Rod, kappa, tau, fields: tuple[str, ...]) -> HelixEquilibria:
+    """The compiled kernel's `WRENCH_FIELDS` of flat `kappa`, `tau` (n,), only `fields` set."""
+    values = cpu_kernel().wrench(kappa, tau, rod_vector(rod))
+    return HelixEquilibria(**{name: values[name] if name in fields else None for name in FIELDS})
+
+
+def _fields_in_xla(rod: Rod, kappa, tau, fields: tuple[str, ...]) -> HelixEquilibria:
+    """`_equilibria_flat` by XLA's program (the reference of the compiled kernel, and the
+    path of other fields, float32, accelerators, batched rods and derivatives)."""
     A, B, C = register_coefficients(rod, kappa, tau)
     good = jnp.isfinite(kappa) & jnp.isfinite(tau) & (kappa >= 0)
     straight = good & (kappa == 0)

@@ -26,7 +26,7 @@ def is_concrete(*trees) -> bool:
 
 def float_dtype():
     """The default floating dtype (float64 with `jax_enable_x64`, else float32)."""
-    return jax.dtypes.canonicalize_dtype(np.float64)
+    return jnp.result_type(float)
 
 
 def safe_sqrt(x: ArrayLike) -> Array:

@@ -21,8 +21,15 @@ entered from several threads at once (tbb or OpenMP: XLA calls the handler from 
 threads); with numba's fallback layer the kernel runs on one thread.  OpenMP's threads do
 not survive a `fork`: start worker processes with "spawn" after using the kernel.
 
+A second handler (`wrench`) serves `helix_equilibria` asked for `WRENCH_FIELDS` (phi,
+valid, force, moment, stable) of one rod: the register coefficients, the same register
+solve and the fields of `_equilibria._fields_in_xla` (the same formulas) in one pass per
+block, the points of the fast path with their wrench in the vectorised loop; XLA's
+program otherwise makes a dozen passes over arrays of the points for the fields.
+
 Only the primal values come from here: `_roots` keeps the implicit-function derivative,
-`phi` (`_roots._angle`) and every other path (float32, accelerators, no numba) in JAX.
+`_equilibria` the derivatives of the fields, and every other path (float32, accelerators,
+no numba) is JAX's.
 numba is optional (``pip install "helixrod[numba]"``); without it, or with
 ``HELIXROD_REGISTER_KERNEL=0`` in the environment, `_roots` runs its XLA program.  The
 handler is compiled once per installation (numba's on-disk cache, next to this file or
@@ -41,10 +48,17 @@ import numpy as np
 from numba import types
 from numba.extending import intrinsic
 
-from ._roots import ASYMPTOTIC_TOL, FAST_ITERATIONS, LEFT_TOL, MORE_ITERATIONS, POLISH_LIMIT, ROUNDOFF_TOL, TANGENT_TOL, TINY
+from ._roots import (
+    ASYMPTOTIC_TOL, ATAN_COEFFICIENTS, FAST_ITERATIONS, LEFT_TOL, MORE_ITERATIONS, POLISH_LIMIT, ROUNDOFF_TOL, TAN_PI_8,
+    TANGENT_TOL, TINY,
+)
 
-#: The name XLA knows the handler by.
+#: The names XLA knows the handlers by: the registers of coefficients A, B, C (`solve`), and
+#: the registers of helices of one rod with their wrench and stability (`wrench`).
 TARGET = "helixrod_register_roots"
+WRENCH_TARGET = "helixrod_helix_wrench"
+#: The fields of `helix_equilibria` that `wrench` computes.
+WRENCH_FIELDS = ("phi", "valid", "force", "moment", "stable")
 # Points per block of the vectorised pass, and the most points solved on one thread.
 _BLOCK = 512
 _SERIAL_POINTS = 2 * _BLOCK
@@ -230,38 +244,46 @@ def _point(A, B, C, cos_out, sin_out, valid, tangent, continuum_out, i, cs, sn, 
 
 
 @numba.njit(**_JIT)
+def _outer_pair(A, B, C):
+    """The fast path of the two outer registers (cos, sin of slot 0, of slot 1), and
+    whether the point needs nothing more (`simple`: no inner pair, no zero coefficient, no
+    continuum, finite, decided astroid test, both roots converged).  Selects only."""
+    finite, continuum, turn, a, b, c = _prepare(A, B, C)
+    factorable = (abs(b) <= TINY) | (abs(c) <= TINY)
+    b = 1.0 if factorable else b
+    c = 1.0 if factorable else c
+    abs_b, abs_c = abs(b), abs(c)
+    a2, b2, c2 = a * a, b * b, c * c
+    w = b2 + c2 - 4 * a2
+    astroid = w * w * w + 108 * a2 * b2 * c2
+    aa = 2 * a
+    r_low = max(abs_b, abs_c) + 0.41421356 * min(abs_b, abs_c)
+    nu0, done0 = _fast_root(max(abs_b, r_low - aa), aa, b2, c2, 1.0)
+    nu1, done1 = _fast_root(max(abs_c, r_low - aa), aa, c2, b2, 1.0)
+    x0, y0 = _xy(False, 1.0, nu0, aa, b, c, 1.0)
+    x1, y1 = _xy(True, 1.0, nu1, aa, c, b, 1.0)
+    simple = finite & (not continuum) & (not factorable) & (astroid > TANGENT_TOL) & done0 & done1
+    return (-y0 if turn else x0), (x0 if turn else y0), (-y1 if turn else x1), (x1 if turn else y1), simple
+
+
+@numba.njit(**_JIT)
 def _solve_block(lo, hi, A, B, C, cos_out, sin_out, valid, tangent, continuum_out):
     """Points lo ... hi - 1 (at most `_BLOCK`) of the flat arrays into the outputs."""
     cos0, sin0 = np.empty(_BLOCK), np.empty(_BLOCK)
     cos1, sin1 = np.empty(_BLOCK), np.empty(_BLOCK)
-    simple = np.empty(_BLOCK, np.bool_)
+    simple = np.empty(_BLOCK)
     cs, sn, ok = np.empty(4), np.empty(4), np.empty(4, np.bool_)
     # Branch-free (selects only), so that LLVM vectorises it: the fast path of the two
-    # outer registers, and whether the point needs nothing more.
-    for i in range(lo, hi):
-        finite, continuum, turn, a, b, c = _prepare(A[i], B[i], C[i])
-        factorable = (abs(b) <= TINY) | (abs(c) <= TINY)
-        b = 1.0 if factorable else b
-        c = 1.0 if factorable else c
-        abs_b, abs_c = abs(b), abs(c)
-        a2, b2, c2 = a * a, b * b, c * c
-        w = b2 + c2 - 4 * a2
-        astroid = w * w * w + 108 * a2 * b2 * c2
-        aa = 2 * a
-        r_low = max(abs_b, abs_c) + 0.41421356 * min(abs_b, abs_c)
-        nu0, done0 = _fast_root(max(abs_b, r_low - aa), aa, b2, c2, 1.0)
-        nu1, done1 = _fast_root(max(abs_c, r_low - aa), aa, c2, b2, 1.0)
-        x0, y0 = _xy(False, 1.0, nu0, aa, b, c, 1.0)
-        x1, y1 = _xy(True, 1.0, nu1, aa, c, b, 1.0)
-        r = i - lo
-        cos0[r] = -y0 if turn else x0
-        sin0[r] = x0 if turn else y0
-        cos1[r] = -y1 if turn else x1
-        sin1[r] = x1 if turn else y1
-        simple[r] = finite & (not continuum) & (not factorable) & (astroid > TANGENT_TOL) & done0 & done1
+    # outer registers, and whether the point needs nothing more.  Indexed from 0 (views of
+    # the block): an index from `lo` may be negative as far as LLVM knows, and the
+    # wraparound test numba then adds keeps the loop scalar.
+    block_A, block_B, block_C = A[lo:hi], B[lo:hi], C[lo:hi]
+    for r in range(hi - lo):
+        cos0[r], sin0[r], cos1[r], sin1[r], fast = _outer_pair(block_A[r], block_B[r], block_C[r])
+        simple[r] = 1.0 if fast else 0.0
     for i in range(lo, hi):
         r = i - lo
-        if simple[r]:
+        if simple[r] != 0:
             cos_out[i, 0], cos_out[i, 1], cos_out[i, 2], cos_out[i, 3] = cos0[r], cos1[r], 0.0, 0.0
             sin_out[i, 0], sin_out[i, 1], sin_out[i, 2], sin_out[i, 3] = sin0[r], sin1[r], 0.0, 0.0
             valid[i, 0], valid[i, 1], valid[i, 2], valid[i, 3] = True, True, False, False
@@ -289,7 +311,143 @@ def _solve_parallel(A, B, C, cos_out, sin_out, valid, tangent, continuum_out):
 
 
 # ---------------------------------------------------------------------------------------
-# The XLA FFI handler: reads the call frame's buffers and calls `_solve_points`.
+# The registers with their wrench and stability, of one rod: `helix_equilibria` with the
+# fields `WRENCH_FIELDS` (the formulas of `_equilibria._fields_in_xla`).
+
+# arctan's polynomial of `_roots._angle` (constants, so that its Horner steps unroll).
+_P0, _P1, _P2, _P3, _P4, _P5, _P6, _P7, _P8, _P9, _P10 = ATAN_COEFFICIENTS
+
+
+@numba.njit(**_JIT)
+def _angle(cos_phi, sin_phi):
+    """`_roots._angle`: phi in [0, 2 pi) from its cosine and sine (selects only)."""
+    ax, ay = abs(cos_phi), abs(sin_phi)
+    low = ay <= TAN_PI_8 * ax
+    high = ax <= TAN_PI_8 * ay
+    num = ay if low else (-ax if high else ay - ax)
+    den = ax if low else (ay if high else ay + ax)
+    t = num / (den if den > 0 else 1.0)
+    z = t * t
+    poly = ((((((((((_P10 * z + _P9) * z + _P8) * z + _P7) * z + _P6) * z + _P5) * z + _P4) * z + _P3) * z + _P2) * z
+             + _P1) * z + _P0)
+    alpha = (0.0 if low else (0.5 * math.pi if high else 0.25 * math.pi)) + (t + t * z * poly)
+    upper = sin_phi >= 0
+    right = (alpha if upper else 2 * math.pi - alpha)
+    left = (math.pi - alpha if upper else math.pi + alpha)
+    phi = right if cos_phi >= 0 else left
+    return phi - 2 * math.pi if phi >= 2 * math.pi else phi
+
+
+@numba.njit(**_JIT)
+def _wrench(c, sn, k, t, norm_u, A, B, C, tangent, rod):
+    """phi, axial force, axial moment and d2W/dphi2 of the register (cos `c`, sin `sn`) of
+    the helix (`k` > 0, `t`; `norm_u` = |(k, t)|) of `rod` (coefficients A, B, C)."""
+    K1, K2, K3, K13, K23, h1, h2, h3 = rod[0], rod[1], rod[2], rod[3], rod[4], rod[5], rod[6], rod[7]
+    u1, u2, u3 = k * sn, k * c, t
+    v1, v2, v3 = u1 - h1, u2 - h2, u3 - h3
+    m1 = K1 * v1 + K13 * v3
+    m2 = K2 * v2 + K23 * v3
+    m3 = K13 * v1 + K23 * v2 + K3 * v3
+    mu1 = (m1 * sn + m2 * c) / k
+    mu2 = m3 - mu1 * t
+    d2 = 0.0 if tangent else k * (2 * A * (c * c - sn * sn) + B * c - C * sn)
+    return _angle(c, sn), mu2 * norm_u, (m1 * u1 + m2 * u2 + m3 * u3) / norm_u, d2
+
+
+@numba.njit(**_JIT)
+def _helix(kappa, tau, rod):
+    """The helix's register coefficients A, B, C (a harmless problem outside the domain,
+    masked), kappa (1 outside), |u| (as jnp.hypot, no overflow) and whether it is helical."""
+    K1, K2, K13, K23, h1, h2, h3 = rod[0], rod[1], rod[3], rod[4], rod[5], rod[6], rod[7]
+    helical = math.isfinite(kappa) & math.isfinite(tau) & (kappa > 0)
+    A = 0.5 * (K1 - K2) * kappa if helical else 1.0
+    B = K2 * h2 + K23 * (h3 - tau) if helical else 0.0
+    C = K13 * (tau - h3) - K1 * h1 if helical else 0.0
+    k = kappa if helical else 1.0
+    big, small = max(k, abs(tau)), min(k, abs(tau))
+    ratio = small / big if big > 0 else 0.0
+    return A, B, C, k, big * math.sqrt(1 + ratio * ratio), helical
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _wrench_block(lo, hi, kappa, tau, rod, phi_o, valid_o, force_o, moment_o, stable_o):
+    """Points lo ... hi - 1 (at most `_BLOCK`): registers, phi, force, moment, stability.
+    The points the fast path settles (two outer registers) in one branch-free loop with
+    their wrench (LLVM vectorises it); the others one at a time (`_point`).  Indexed from 0
+    on views of the block (as `_solve_block`), flags through float scratch (a boolean
+    store kept the loop scalar: measured 171 against 31 ns a point on one core)."""
+    count = hi - lo
+    kappa, tau = kappa[lo:hi], tau[lo:hi]
+    phi_o, valid_o, force_o = phi_o[4 * lo:4 * hi], valid_o[4 * lo:4 * hi], force_o[4 * lo:4 * hi]
+    moment_o, stable_o = moment_o[4 * lo:4 * hi], stable_o[4 * lo:4 * hi]
+    simple, d2 = np.empty(_BLOCK), np.empty(2 * _BLOCK)
+    cs, sn, ok = np.empty(4), np.empty(4), np.empty(4, np.bool_)
+    cos_r, sin_r = np.empty((1, 4)), np.empty((1, 4))
+    valid_r, tangent_r, continuum_r = np.empty((1, 4), np.bool_), np.empty((1, 4), np.bool_), np.empty(1, np.bool_)
+    nan = np.nan
+    for i in range(count):
+        A, B, C, k, norm_u, helical = _helix(kappa[i], tau[i], rod)
+        c0, s0, c1, s1, fast = _outer_pair(A, B, C)
+        phi0, force0, moment0, d0 = _wrench(c0, s0, k, tau[i], norm_u, A, B, C, False, rod)
+        phi1, force1, moment1, d1 = _wrench(c1, s1, k, tau[i], norm_u, A, B, C, False, rod)
+        j = 4 * i
+        phi_o[j], phi_o[j + 1], phi_o[j + 2], phi_o[j + 3] = phi0, phi1, nan, nan
+        force_o[j], force_o[j + 1], force_o[j + 2], force_o[j + 3] = force0, force1, nan, nan
+        moment_o[j], moment_o[j + 1], moment_o[j + 2], moment_o[j + 3] = moment0, moment1, nan, nan
+        d2[2 * i], d2[2 * i + 1] = d0, d1
+        simple[i] = 1.0 if fast & helical else 0.0
+    for i in range(count):
+        j = 4 * i
+        valid_o[j], valid_o[j + 1], valid_o[j + 2], valid_o[j + 3] = True, True, False, False
+        stable_o[j], stable_o[j + 1], stable_o[j + 2], stable_o[j + 3] = d2[2 * i] > 0, d2[2 * i + 1] > 0, False, False
+    for i in range(count):
+        if simple[i] != 0:
+            continue
+        A, B, C, k, norm_u, helical = _helix(kappa[i], tau[i], rod)
+        _point(A, B, C, cos_r, sin_r, valid_r, tangent_r, continuum_r, 0, cs, sn, ok)
+        continuum = continuum_r[0] & helical
+        for s in range(4):
+            j = 4 * i + s
+            valid = valid_r[0, s] & helical
+            tangent = tangent_r[0, s]
+            phi, force, moment, d2s = _wrench(cos_r[0, s], sin_r[0, s], k, tau[i], norm_u, A, B, C, tangent, rod)
+            phi_o[j] = phi if valid else nan
+            force_o[j] = force if valid else nan
+            moment_o[j] = moment if valid else nan
+            valid_o[j] = valid
+            stable_o[j] = valid & (not tangent) & (not continuum) & (d2s > 0)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _wrench_serial(kappa, tau, rods, phi, valid, force, moment, stable):
+    """The wrench of every row (a rod and its points; several under `jax.vmap`)."""
+    rows = rods.shape[0] // 8
+    points = kappa.shape[0] // max(rows, 1)
+    for row in range(rows):
+        rod, first = rods[8 * row:8 * row + 8], row * points
+        for b in range((points + _BLOCK - 1) // _BLOCK):
+            lo = first + b * _BLOCK
+            _wrench_block(lo, min(first + points, lo + _BLOCK), kappa, tau, rod, phi, valid, force, moment, stable)
+
+
+@numba.njit(cache=True, error_model="numpy", parallel=True)
+def _wrench_parallel(kappa, tau, rods, phi, valid, force, moment, stable):
+    """`_wrench_serial` with the blocks of a row of more than `_SERIAL_POINTS` points
+    shared among numba's threads."""
+    rows = rods.shape[0] // 8
+    points = kappa.shape[0] // max(rows, 1)
+    if points <= _SERIAL_POINTS:
+        _wrench_serial(kappa, tau, rods, phi, valid, force, moment, stable)
+        return
+    for row in range(rows):
+        rod, first = rods[8 * row:8 * row + 8], row * points
+        for b in numba.prange((points + _BLOCK - 1) // _BLOCK):
+            lo = first + b * _BLOCK
+            _wrench_block(lo, min(first + points, lo + _BLOCK), kappa, tau, rod, phi, valid, force, moment, stable)
+
+
+# ---------------------------------------------------------------------------------------
+# The XLA FFI handlers: read the call frame's buffers and call the loops above.
 
 
 @intrinsic
@@ -325,9 +483,11 @@ def _buffer(address, count, dtype):
 
 
 @numba.njit(**_JIT)
-def _arguments(frame_address):
-    """The call frame's buffers as arrays, and whether XLA asks to execute: registration
-    first calls the handler for its metadata (the FFI version it was built for)."""
+def _frame(frame_address, n_args, n_rets):
+    """The call frame's argument and result buffer addresses, and whether XLA asks to
+    execute this module's call (`n_args` arguments, `n_rets` results; anything else is left
+    alone): registration first calls the handler for its metadata (the FFI version it was
+    built for)."""
     frame = numba.carray(frame_address, (15,), dtype=np.int64)
     if frame[1] != 0:
         base = _words(frame[1], 4)
@@ -336,17 +496,30 @@ def _arguments(frame_address):
             version = numba.carray(_pointer(metadata + 24), (2,), dtype=np.int32)
             version[0], version[1] = _API_MAJOR, _API_MINOR
             numba.carray(_pointer(metadata + 32), (1,), dtype=np.uint32)[0] = 0
-    # Executed: this module's own calls, 3 arguments and 5 results (anything else is left alone).
-    execute = frame[1] == 0 and (frame[4] & 0xFFFFFFFF) == _STAGE_EXECUTE and frame[7] == 3 and frame[12] == 5
-    args = _words(frame[9], 3) if execute else np.zeros(3, np.int64)
-    rets = _words(frame[14], 5) if execute else np.zeros(5, np.int64)
-    n = 0
-    if execute:
-        first = _words(args[0], 6)
-        dims = _words(first[5], first[4])
-        n = 1
-        for k in range(first[4]):
-            n *= dims[k]
+    execute = frame[1] == 0 and (frame[4] & 0xFFFFFFFF) == _STAGE_EXECUTE and frame[7] == n_args and frame[12] == n_rets
+    args = _words(frame[9], n_args) if execute else np.zeros(n_args, np.int64)
+    rets = _words(frame[14], n_rets) if execute else np.zeros(n_rets, np.int64)
+    return execute, args, rets
+
+
+@numba.njit(**_JIT)
+def _size(execute, address):
+    """The number of items of the XLA_FFI_Buffer at `address` (0 unless `execute`)."""
+    if not execute:
+        return 0
+    buffer = _words(address, 6)
+    dims = _words(buffer[5], buffer[4])
+    n = 1
+    for k in range(buffer[4]):
+        n *= dims[k]
+    return n
+
+
+@numba.njit(**_JIT)
+def _arguments(frame_address):
+    """`solve`'s buffers as arrays (3 arguments, 5 results), and whether to execute."""
+    execute, args, rets = _frame(frame_address, 3, 5)
+    n = _size(execute, args[0])
     return (
         execute,
         _buffer(args[0], n, np.float64),
@@ -357,6 +530,25 @@ def _arguments(frame_address):
         _buffer(rets[2], 4 * n, np.bool_).reshape((n, 4)),
         _buffer(rets[4], 4 * n, np.bool_).reshape((n, 4)),
         _buffer(rets[3], n, np.bool_),
+    )
+
+
+@numba.njit(**_JIT)
+def _wrench_arguments(frame_address):
+    """`wrench`'s buffers as flat arrays (kappa, tau, the rods; phi, valid, force, moment,
+    stable), and whether to execute."""
+    execute, args, rets = _frame(frame_address, 3, 5)
+    n = _size(execute, args[0])
+    return (
+        execute,
+        _buffer(args[0], n, np.float64),
+        _buffer(args[1], n, np.float64),
+        _buffer(args[2], _size(execute, args[2]), np.float64),
+        _buffer(rets[0], 4 * n, np.float64),
+        _buffer(rets[1], 4 * n, np.bool_),
+        _buffer(rets[2], 4 * n, np.float64),
+        _buffer(rets[3], 4 * n, np.float64),
+        _buffer(rets[4], 4 * n, np.bool_),
     )
 
 
@@ -371,6 +563,20 @@ def _parallel_handler(frame_address):
     execute, A, B, C, cos_out, sin_out, valid, tangent, continuum = _arguments(frame_address)
     if execute:
         _solve_parallel(A, B, C, cos_out, sin_out, valid, tangent, continuum)
+    return _pointer(0)
+
+
+def _wrench_serial_handler(frame_address):
+    execute, kappa, tau, rods, phi, valid, force, moment, stable = _wrench_arguments(frame_address)
+    if execute:
+        _wrench_serial(kappa, tau, rods, phi, valid, force, moment, stable)
+    return _pointer(0)
+
+
+def _wrench_parallel_handler(frame_address):
+    execute, kappa, tau, rods, phi, valid, force, moment, stable = _wrench_arguments(frame_address)
+    if execute:
+        _wrench_parallel(kappa, tau, rods, phi, valid, force, moment, stable)
     return _pointer(0)
 
 
@@ -394,6 +600,12 @@ def _thread_safe_layer() -> bool:
 PARALLEL = _thread_safe_layer()
 _handler = numba.cfunc(types.voidptr(types.voidptr), cache=True)(_parallel_handler if PARALLEL else _serial_handler)
 jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(ctypes.cast(_handler.address, ctypes.c_void_p)), platform="cpu")
+_wrench_handler = numba.cfunc(types.voidptr(types.voidptr), cache=True)(
+    _wrench_parallel_handler if PARALLEL else _wrench_serial_handler
+)
+jax.ffi.register_ffi_target(
+    WRENCH_TARGET, jax.ffi.pycapsule(ctypes.cast(_wrench_handler.address, ctypes.c_void_p)), platform="cpu"
+)
 
 
 def check():
@@ -430,3 +642,13 @@ def solve(A, B, C):
     flags = jax.ShapeDtypeStruct((n, 4), jnp.bool_)
     shapes = (per_slot, per_slot, flags, jax.ShapeDtypeStruct((n,), jnp.bool_), flags)
     return jax.ffi.ffi_call(TARGET, shapes, vmap_method="broadcast_all")(A, B, C)
+
+
+def wrench(kappa, tau, rod_vector):
+    """`WRENCH_FIELDS` of the helices (`kappa`, `tau`: flat float64 arrays (n,)) of one rod
+    (`rod_vector`: its 8 parameters, `_rod.rod_vector`), as `_equilibria._fields_in_xla`
+    computes them: a dict name -> (n, 4) array."""
+    n = kappa.shape[0]
+    value, flag = jax.ShapeDtypeStruct((n, 4), jnp.float64), jax.ShapeDtypeStruct((n, 4), jnp.bool_)
+    call = jax.ffi.ffi_call(WRENCH_TARGET, (value, flag, value, value, flag), vmap_method="broadcast_all")
+    return dict(zip(WRENCH_FIELDS, call(kappa, tau, rod_vector)))

@@ -460,8 +460,8 @@ def _expand(mask, like):
 # tan(pi/8), and arctan(t) = t + t z P(z), z = t^2, on |t| <= tan(pi/8): P of degree 10
 # interpolated at Chebyshev nodes of z in 50-digit arithmetic (mpmath); the float64
 # evaluation is within 3.2e-17 of arctan there (checked against mpmath, tests/test_roots.py).
-_TAN_PI_8 = 0.41421356237309503
-_ATAN_COEFFICIENTS = (
+TAN_PI_8 = 0.41421356237309503
+ATAN_COEFFICIENTS = (
     -0.3333333333333333,
     0.1999999999999552,
     -0.14285714284666542,
@@ -485,14 +485,14 @@ def _angle(cos_phi, sin_phi):
     of XLA's `arctan` it made `helix_equilibria` (phi, force, moment, stable) ~20% faster
     on 2 CPU cores and ~2x on an H100 (measured, `benchmarks/`)."""
     ax, ay = jnp.abs(cos_phi), jnp.abs(sin_phi)
-    low = ay <= _TAN_PI_8 * ax
-    high = ax <= _TAN_PI_8 * ay
+    low = ay <= TAN_PI_8 * ax
+    high = ax <= TAN_PI_8 * ay
     num = jnp.where(low, ay, jnp.where(high, -ax, ay - ax))
     den = jnp.where(low, ax, jnp.where(high, ay, ay + ax))
     t = num / jnp.where(den > 0, den, 1.0)
     z = t * t
-    poly = _ATAN_COEFFICIENTS[-1]
-    for coefficient in _ATAN_COEFFICIENTS[-2::-1]:
+    poly = ATAN_COEFFICIENTS[-1]
+    for coefficient in ATAN_COEFFICIENTS[-2::-1]:
         poly = poly * z + coefficient
     alpha = jnp.where(low, 0.0, jnp.where(high, 0.5 * jnp.pi, 0.25 * jnp.pi)) + (t + t * z * poly)
     upper = sin_phi >= 0

@@ -236,34 +236,29 @@ def _wrench_kernel(rod: Rod, kappa, fields: tuple[str, ...]):
     return kernel if kernel is not None and set(fields) <= set(kernel.WRENCH_FIELDS) else None
 
 
+@jit(static_argnames=("fields", "limit"))
 def _wrench_by_kernel(rod: Rod, kappa, tau, fields: tuple[str, ...], limit: int | None) -> HelixEquilibria:
-    """`_equilibria_flat`'s values from the compiled kernel (`_wrench_of`): one pass over
-    the points, the registers and their wrench in each cache-sized block, where XLA's
-    program makes a dozen passes over arrays of the points.  Their derivatives are those of
-    XLA's program (the kernel has none), in chunks of `limit` points as
-    `_equilibria_chunked` (None: one pass): under `jax.jvp`, `jax.grad` and the fits'
-    Jacobians the values come from XLA's program too, equal to rounding.  (Not itself
-    jitted: a linearisation through a jitted rule kept copies of the inputs besides them.)"""
+    """`_equilibria_flat`'s values from the compiled kernel: one pass over the points, the
+    registers and their wrench in each cache-sized block, where XLA's program makes a
+    dozen passes over arrays of the points.  Their derivatives are those of XLA's program
+    (the kernel has none), in chunks of `limit` points as `_equilibria_chunked` (None: one
+    pass; checkpointed, so that a linearisation keeps the inputs, not each chunk's
+    intermediates): under `jax.jvp`, `jax.grad` and the fits' Jacobians the values come
+    from XLA's program too, equal to rounding.  One program (an eager call is one dispatch)."""
 
     @jax.custom_jvp
     def by_kernel(rod, kappa, tau):
-        return _wrench_of(rod, kappa, tau, fields)
+        values = cpu_kernel().wrench(kappa, tau, rod_vector(rod))
+        return HelixEquilibria(**{name: values[name] if name in fields else None for name in FIELDS})
 
     @by_kernel.defjvp
     def by_kernel_jvp(primals, tangents):
         if limit is None:
-            return jax.jvp(lambda r, k, t: _equilibria_flat(r, k, t, fields), primals, tangents)
+            return jax.jvp(lambda r, k, t: _fields_in_xla(r, k, t, fields), primals, tangents)
         chunked = jax.checkpoint(lambda r, k, t: _equilibria_chunked(r, k, t, limit=limit, fields=fields))
         return jax.jvp(chunked, primals, tangents)
 
     return by_kernel(rod, kappa, tau)
-
-
-@jit(static_argnames="fields")
-def _wrench_of(rod: Rod, kappa, tau, fields: tuple[str, ...]) -> HelixEquilibria:
-    """The compiled kernel's `WRENCH_FIELDS` of flat `kappa`, `tau` (n,), only `fields` set."""
-    values = cpu_kernel().wrench(kappa, tau, rod_vector(rod))
-    return HelixEquilibria(**{name: values[name] if name in fields else None for name in FIELDS})
 
 
 def _fields_in_xla(rod: Rod, kappa, tau, fields: tuple[str, ...]) -> HelixEquilibria:

@@ -552,34 +552,6 @@ def _wrench_arguments(frame_address):
     )
 
 
-def _serial_handler(frame_address):
-    execute, A, B, C, cos_out, sin_out, valid, tangent, continuum = _arguments(frame_address)
-    if execute:
-        _solve_serial(A, B, C, cos_out, sin_out, valid, tangent, continuum)
-    return _pointer(0)
-
-
-def _parallel_handler(frame_address):
-    execute, A, B, C, cos_out, sin_out, valid, tangent, continuum = _arguments(frame_address)
-    if execute:
-        _solve_parallel(A, B, C, cos_out, sin_out, valid, tangent, continuum)
-    return _pointer(0)
-
-
-def _wrench_serial_handler(frame_address):
-    execute, kappa, tau, rods, phi, valid, force, moment, stable = _wrench_arguments(frame_address)
-    if execute:
-        _wrench_serial(kappa, tau, rods, phi, valid, force, moment, stable)
-    return _pointer(0)
-
-
-def _wrench_parallel_handler(frame_address):
-    execute, kappa, tau, rods, phi, valid, force, moment, stable = _wrench_arguments(frame_address)
-    if execute:
-        _wrench_parallel(kappa, tau, rods, phi, valid, force, moment, stable)
-    return _pointer(0)
-
-
 @numba.njit(cache=True, parallel=True)
 def _start_threads(x):
     total = 0.0
@@ -598,14 +570,28 @@ def _thread_safe_layer() -> bool:
 
 
 PARALLEL = _thread_safe_layer()
-_handler = numba.cfunc(types.voidptr(types.voidptr), cache=True)(_parallel_handler if PARALLEL else _serial_handler)
-jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(ctypes.cast(_handler.address, ctypes.c_void_p)), platform="cpu")
-_wrench_handler = numba.cfunc(types.voidptr(types.voidptr), cache=True)(
-    _wrench_parallel_handler if PARALLEL else _wrench_serial_handler
-)
-jax.ffi.register_ffi_target(
-    WRENCH_TARGET, jax.ffi.pycapsule(ctypes.cast(_wrench_handler.address, ctypes.c_void_p)), platform="cpu"
-)
+_solve_points = _solve_parallel if PARALLEL else _solve_serial
+_wrench_points = _wrench_parallel if PARALLEL else _wrench_serial
+
+
+def _solve_handler(frame_address):
+    execute, A, B, C, cos_out, sin_out, valid, tangent, continuum = _arguments(frame_address)
+    if execute:
+        _solve_points(A, B, C, cos_out, sin_out, valid, tangent, continuum)
+    return _pointer(0)
+
+
+def _wrench_handler(frame_address):
+    execute, kappa, tau, rods, phi, valid, force, moment, stable = _wrench_arguments(frame_address)
+    if execute:
+        _wrench_points(kappa, tau, rods, phi, valid, force, moment, stable)
+    return _pointer(0)
+
+
+_solve_cfunc = numba.cfunc(types.voidptr(types.voidptr), cache=True)(_solve_handler)
+_wrench_cfunc = numba.cfunc(types.voidptr(types.voidptr), cache=True)(_wrench_handler)
+for _target, _compiled in ((TARGET, _solve_cfunc), (WRENCH_TARGET, _wrench_cfunc)):
+    jax.ffi.register_ffi_target(_target, jax.ffi.pycapsule(ctypes.cast(_compiled.address, ctypes.c_void_p)), platform="cpu")
 
 
 def check():
@@ -630,8 +616,28 @@ def check():
         and np.all(np.abs(np.where(valid, f, 0.0)) < 1e-13)
         and np.all(np.abs(np.where(valid, cos_phi**2 + sin_phi**2 - 1.0, 0.0)) < 1e-14)
     )
-    if not ok:
+    if not ok or not _wrench_checks():
         raise RuntimeError("the register kernel's results failed its check (an XLA FFI it was not written for?)")
+
+
+def _wrench_checks() -> bool:
+    """Whether `wrench` returns equilibria: at its valid registers m1 u2 = m2 u1 and the
+    force mu2 |u| (NumPy), none at kappa = 0."""
+    kappa, tau = np.array([0.5, 1.0, 2.0, 0.0]), np.array([1.5, -0.3, 0.7, 1.0])
+    rod = np.array([1.0, 1.5, 0.8, 0.5, 0.5, 1.0, 0.0, 0.0])
+    with jax.ensure_compile_time_eval():
+        out = {name: np.asarray(x) for name, x in jax.jit(wrench)(kappa, tau, rod).items()}
+    k, t, phi = kappa[:, None], tau[:, None], out["phi"]
+    u = np.stack([k * np.sin(phi), k * np.cos(phi), np.broadcast_to(t, phi.shape)], axis=-1)
+    K = np.array([[1.0, 0.0, 0.5], [0.0, 1.5, 0.5], [0.5, 0.5, 0.8]])
+    m = (u - rod[5:]) @ K
+    mu1 = (m[..., 0] * u[..., 0] + m[..., 1] * u[..., 1]) / (k * k)
+    force = (m[..., 2] - mu1 * t) * np.hypot(k, t)
+    valid = out["valid"]
+    with np.errstate(invalid="ignore"):
+        balanced = np.abs(m[..., 0] * u[..., 1] - m[..., 1] * u[..., 0]) < 1e-12
+        forces = np.abs(force - out["force"]) < 1e-12 * (1 + np.abs(force))
+    return bool(valid[:3, :2].all() and not valid[3].any() and balanced[valid].all() and forces[valid].all())
 
 
 def solve(A, B, C):

@@ -85,7 +85,16 @@ def _check_rod(rod, caller="sweep") -> None:
 
 def _equilibrium_fields(rod: Rod, kappa, tau, fields: tuple[str, ...]) -> dict:
     """The requested fields at flat points (kappa, tau), shape (n,) each."""
-    eq = helix_equilibria(rod, kappa, tau)
+    branch = [f for f in ("stable_phi", "stable_force", "stable_moment") if f in fields]
+    # Only what they are made of: with the compiled kernel, fields among phi, valid, force,
+    # moment and stable (the default sweep's) are one pass of it instead of XLA's program.
+    needed = {name for name in fields if name in REGISTER_FIELDS} | {
+        field for name, field in (("count", "valid"), ("stable_count", "stable"), ("continuum", "continuum"),
+                                  ("straight", "straight")) if name in fields
+    }
+    if branch:
+        needed |= {"stable", "energy"} | {name.removeprefix("stable_") for name in branch}
+    eq = helix_equilibria(rod, kappa, tau, fields=tuple(sorted(needed)))
     out = {}
     for name in fields:
         if name in REGISTER_FIELDS:
@@ -98,7 +107,6 @@ def _equilibrium_fields(rod: Rod, kappa, tau, fields: tuple[str, ...]) -> dict:
         out["continuum"] = eq.continuum
     if "straight" in fields:
         out["straight"] = eq.straight
-    branch = [f for f in ("stable_phi", "stable_force", "stable_moment") if f in fields]
     if branch:
         # The stable branch: the stable register of least energy (the global minimum of W
         # on the constraint circle whenever it is a strict minimum).  NaN where no register

@@ -186,6 +186,27 @@ def test_default_derivatives_are_the_sensitivities_of_the_solution():
     np.testing.assert_allclose(rev, fd, rtol=0, atol=1e-8 * scale)
 
 
+def test_default_second_derivatives_match_differences_of_the_gradient():
+    """The Hessian `jax.jacfwd(jax.grad(f))` of a scalar of the end state with respect to a
+    stiffness, n0 and the length: the forward-over-reverse derivative of the default
+    sensitivity rule, which differentiates itself again.  Expected: central differences of
+    `jax.grad(f)` (step 1e-5, solves at tolerance 1e-12) to 1e-6 of the largest entry."""
+
+    def f(p):
+        rod = hr.Rod(p[0], 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
+        sol = hr.solve_static(rod, p[1:4], M1, p[4], outputs="centreline", rtol=1e-12, atol=1e-12)
+        return jnp.sum(sol.m[-1] ** 2) + jnp.sum(sol.x[-1] * jnp.array([0.3, -0.2, 0.5]))
+
+    p = jnp.concatenate([jnp.array([1.0]), N1, jnp.array([2.5])])
+    hessian = np.asarray(jax.jit(jax.jacfwd(jax.grad(f)))(p))
+    gradient, h = jax.jit(jax.grad(f)), 1e-5
+    fd = np.stack([(gradient(p + h * e) - gradient(p - h * e)) / (2 * h) for e in np.eye(p.size)], -1)
+    scale = np.max(np.abs(fd))
+    assert scale > 1.0
+    np.testing.assert_allclose(hessian, fd, rtol=0, atol=1e-6 * scale)
+    np.testing.assert_allclose(hessian, hessian.T, rtol=0, atol=1e-9 * scale)
+
+
 def test_default_gradient_under_vmap_flags_a_bad_point():
     """`jax.vmap(jax.grad(...))` of an end moment over three n0, the middle one NaN.
     Expected: the bad point is flagged (`valid_input=False`) and the good points' gradients

@@ -6,6 +6,7 @@ tweezer fit recovers its generating parameters (slow)."""
 
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -327,3 +328,40 @@ def test_the_static_paths_agree_with_the_general_one():
     traced = jax.jit(lambda f: tw.tweezer_response(ROD, 8000, f, torque=jnp.zeros_like(f)))(forces)
     np.testing.assert_allclose(eager.extension, traced.extension, rtol=1e-12)
     np.testing.assert_allclose(eager.twist_modulus, traced.twist_modulus, rtol=1e-12)
+
+
+def test_errors_in_variables_sigma_is_the_slopes_in_quadrature():
+    """The effective extension sigma of a tweezer model with force and turns errors (the
+    slopes are tangents of the model's own evaluation): sqrt(s_e^2 + (dz/dF s_F)^2 +
+    (dz/dn s_n)^2) with the slopes of `dna.tweezer_response` by central differences; a
+    torque-controlled point (zero torque: a force-extension point) takes no turns term.
+    Expected to 1e-7 relative (the differences' truncation)."""
+    from helixrod._fit import forward_model
+
+    force = np.array([0.8, 1.0, 1.5, 3.0, 10.0])
+    turns = np.array([-5.0, 2.0, 8.0, np.nan, np.nan])
+    torque = np.array([np.nan, np.nan, np.nan, 0.0, 0.0])
+    force_sigma, turns_sigma, n_bp = np.array([0.02, 0.03, 0.05, 0.1, 0.2]), 0.1, 8000.0
+    data = dna.TweezerData.from_arrays(
+        force, np.full(5, 2000.0), extension_sigma=3.0, turns=turns, torque=torque, force_sigma=force_sigma,
+        turns_sigma=turns_sigma, n_bp=n_bp,
+    )
+    model = forward_model(data)
+    assert model.errors_in_variables
+    _, predicted = eqx.filter_jit(lambda m, rod, extra: m.residuals(rod, extra))(model, ROD, jnp.array([48.0, 24.0, 0.0]))
+
+    def extension(F, control, by_torque):
+        control = {"torque": control} if by_torque else {"turns": control}
+        return float(tw.tweezer_response(ROD, n_bp, F, persistence_length=48.0, **control).extension)
+
+    for i in range(5):
+        by_torque = bool(np.isfinite(torque[i]))
+        control = torque[i] if by_torque else turns[i]
+        h_force, h_turns = 1e-4 * force[i], 1e-3
+        slope_force = (extension(force[i] + h_force, control, by_torque) - extension(force[i] - h_force, control, by_torque)) / (2 * h_force)
+        variance = 9.0 + (slope_force * force_sigma[i]) ** 2
+        if not by_torque:
+            slope_turns = (extension(force[i], control + h_turns, False) - extension(force[i], control - h_turns, False)) / (2 * h_turns)
+            variance += (slope_turns * turns_sigma) ** 2
+        assert variance > 9.0 * (1 + 1e-3)  # the slopes matter here
+        np.testing.assert_allclose(predicted["extension_sigma"][i], np.sqrt(variance), rtol=1e-7)

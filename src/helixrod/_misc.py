@@ -404,6 +404,9 @@ def newton_iterations(residual, x0, steps: int, project=None, tolerance=None):
     afterwards).  Without `tolerance` all `steps` run; with it the iteration stops once
     every component of a step is below `tolerance` (under `vmap`: once all points have)."""
 
+    if steps == 0:  # nothing to trace (a loop of no steps is traced and transformed all the same)
+        return x0
+
     def step(x):
         dx = solve_small(jax.jacfwd(residual)(x), residual(x))
         dx = jnp.where(jnp.all(jnp.isfinite(dx)), dx, 0.0)

@@ -105,10 +105,11 @@ class TweezerModel(AbstractForwardModel):
         return extension + offsets[self.molecule], torque, phase, ok
 
     def residuals(self, rod, extra):
-        extension, torque, phase, ok = self._predict(rod, extra, self.force, self.control)
-        sigma = self.extension_sigma
         if self.errors_in_variables:
-            sigma = self._effective_sigma(rod, extra)
+            (extension, torque, phase, ok), sigma = self._predict_with_sigma(rod, extra)
+        else:
+            extension, torque, phase, ok = self._predict(rod, extra, self.force, self.control)
+            sigma = self.extension_sigma
         r_extension = (extension - self.extension) / sigma
         r_torque = (torque[self.torque_points] - self.measured_torque) / self.measured_torque_sigma
         predicted = {
@@ -117,22 +118,32 @@ class TweezerModel(AbstractForwardModel):
         }
         return jnp.concatenate([r_extension, r_torque]), predicted
 
-    def _effective_sigma(self, rod, extra):
-        frozen = jax.lax.stop_gradient((rod, extra))
-
-        def extension_of(force, control):
-            return self._predict(*frozen, force, control)[0]
-
-        variance = self.extension_sigma**2
-        zeros = jnp.zeros_like(self.force)
+    def _predict_with_sigma(self, rod, extra):
+        """`_predict` at the data, and the effective extension sigma of errors in variables:
+        the extension sigma and the force and turns sigmas through the slopes of the model,
+        in quadrature, held fixed (no derivative: a weight, not a prediction).  The slopes
+        are tangents of the same evaluation (one instance of the model in the fit's
+        program, not a second one for the slopes)."""
+        directions = []
         if self.force_sigma is not None:
-            slope = jax.jvp(extension_of, (self.force, self.control), (jnp.ones_like(self.force), zeros))[1]
-            variance = variance + (slope * self.force_sigma) ** 2
+            directions.append((jnp.ones_like(self.force), jnp.zeros_like(self.control), self.force_sigma))
         if self.turns_sigma is not None:
             turned = jnp.where(self.torque_controlled, 0.0, 1.0)
-            slope = jax.jvp(extension_of, (self.force, self.control), (zeros, turned))[1]
-            variance = variance + (slope * jnp.where(self.torque_controlled, 0.0, self.turns_sigma)) ** 2
-        return jax.lax.stop_gradient(jnp.sqrt(variance))
+            directions.append((jnp.zeros_like(self.force), turned, jnp.where(self.torque_controlled, 0.0, self.turns_sigma)))
+        d_force, d_control, control_sigma = (jnp.stack(parts) for parts in zip(*directions))
+
+        def along(t_force, t_control):
+            return jax.jvp(lambda F, c: self._predict(rod, extra, F, c), (self.force, self.control), (t_force, t_control))
+
+        if len(directions) == 1:  # no batch of one direction to trace
+            predicted, tangents = along(d_force[0], d_control[0])
+            slopes = tangents[0][None]
+        else:
+            predicted, tangents = jax.vmap(along, out_axes=(None, 0))(d_force, d_control)
+            slopes = tangents[0]
+        slopes = jax.lax.stop_gradient(slopes)
+        variance = self.extension_sigma**2 + jnp.sum((slopes * control_sigma) ** 2, axis=0)
+        return predicted, jnp.sqrt(variance)
 
     def isotropic_start(self, uhat):
         """The isotropic rod $\\mathrm{diag}(B, B, C_w)$ with intrinsic helix `uhat` whose

@@ -418,7 +418,9 @@ def _with_sensitivities(rod, y0, length, ts, rtol, atol, solved, *, max_steps: i
     `solve_static` traces its integration once (in the caller) and the sensitivities'
     once (in the rule): a rule that integrated the flow itself traced it a second time.
     Measured on the L = 40 solve of `benchmarks/bench_first_calls.py` (one core): the trace
-    of its `jax.grad` 1.26 -> 1.04 s, the first call with a warm cache 2.1 -> 1.8 s."""
+    of its `jax.grad` 1.26 -> 1.04 s; fresh processes alternating with the previous code, the
+    first call with a warm cache 2.09-2.23 -> 1.86-1.96 s, without a cache 6.68-6.75 ->
+    6.51-6.64 s."""
     return solved
 
 

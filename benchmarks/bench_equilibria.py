@@ -148,6 +148,14 @@ def errors_against(refs, found):
     return dphi, dforce
 
 
+def cpu_model() -> str:
+    """The CPU's model name (Linux), recorded with the results."""
+    try:
+        return next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name"))
+    except (OSError, StopIteration):
+        return platform.processor() or platform.machine()
+
+
 def timed(fn, repeats):
     best_wall, best_cpu = np.inf, np.inf
     for _ in range(repeats):
@@ -172,7 +180,7 @@ def main():
     n_ref = 100 if opts.quick else 400
     repeats = 3
     report = dict(
-        machine=dict(platform=platform.platform(), cpus=os.cpu_count(), devices=[str(d) for d in jax.local_devices()],
+        machine=dict(platform=platform.platform(), cpus=os.cpu_count(), cpu=cpu_model(), devices=[str(d) for d in jax.local_devices()],
                      jax=jax.__version__, numpy=np.__version__),
         rod=ROD_ARGS, runs=[], accuracy={}, compile_s={}, cores=cores, agreement={}, flops_per_point={},
     )

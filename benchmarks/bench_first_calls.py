@@ -17,7 +17,8 @@ The targets of issue 20: every first call <= 5 s cold and <= 1.5 s warm on 2 cor
 `jax.grad` through `solve_static` <= 15 s and <= 1 GB.
 
 Usage: python benchmarks/bench_first_calls.py [--quick] [--cases a,b] [--one-core]
-Writes benchmarks/results/bench_first_calls.json.
+Writes benchmarks/results/bench_first_calls.json; the cases not run keep their earlier results
+there (those of a run on the same machine with the same --one-core setting).
 """
 
 from __future__ import annotations
@@ -65,6 +66,12 @@ def call(i):
 rod = hr.Rod(1.0, 1.5, 0.8)
 call = lambda i: hr.solve_boundary_value(rod, 1.0, end=hr.Loaded(force=(0.0, 0.0, -3.0 - 0.1 * i)))
 """,
+    "fit_stiffness (tweezer example)": """
+rod = hr.dna.load_tweezer_example().rod
+data = hr.dna.load_tweezer_curves_example().data
+fix = {"K1": float(rod.K1), "K13": 0.0}
+call = lambda i: hr.fit_stiffness(data, uhat=rod.uhat, init=rod, fix=fix, fit_offsets=True).rod
+""",
 }
 
 RUNNER = """
@@ -106,7 +113,19 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="the three shortest cases")
     parser.add_argument("--one-core", action="store_true", help="pin each process to one core (taskset -c 1)")
     args = parser.parse_args()
-    results = {}
+    out = Path(__file__).parent / "results" / "bench_first_calls.json"
+    try:
+        cpu = next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name"))
+    except (OSError, StopIteration):
+        cpu = "unknown CPU"
+    machine = f"{os.cpu_count()} cores ({cpu})"
+    # Cases not run now keep their earlier results, from a run on this machine with the same --one-core.
+    try:
+        earlier = json.loads(out.read_text())
+        same = earlier.get("one_core") == args.one_core and earlier.get("machine") == machine
+        results = earlier["results"] if same else {}
+    except (OSError, ValueError, KeyError):
+        results = {}
     print(f"{'case':22s} {'setting':12s} {'first (wall)':>12s} {'first (CPU)':>12s} {'later':>10s} {'peak RSS':>9s}")
     names = ["helix_equilibria", "solve_static", "helices_under_load"] if args.quick else args.cases.split(",")
     for name in names:
@@ -123,12 +142,7 @@ def main() -> None:
                     f"{1e3 * r['later_wall_s']:8.1f}ms {r['peak_rss_gb']:8.2f}G",
                     flush=True,
                 )
-    out = Path(__file__).parent / "results" / "bench_first_calls.json"
-    try:
-        cpu = next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name"))
-    except (OSError, StopIteration):
-        cpu = "unknown CPU"
-    out.write_text(json.dumps(dict(one_core=args.one_core, machine=f"{os.cpu_count()} cores ({cpu})", results=results), indent=1))
+    out.write_text(json.dumps(dict(one_core=args.one_core, machine=machine, results=results), indent=1))
     print(f"wrote {out}")
 
 

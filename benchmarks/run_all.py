@@ -19,6 +19,7 @@ import argparse
 import json
 import os
 import platform
+import re
 import subprocess
 import sys
 import time
@@ -253,6 +254,30 @@ def _fmt(x, kind):
     return str(x)
 
 
+#: What the header says of runs whose JSON files do not record their machine (runs before
+#: these records; the README's text names the machine of each).
+EARLIER_MACHINE = "machines their JSON files do not record"
+
+
+def run_machine(report) -> str | None:
+    """The CPU a benchmark's JSON says it ran on, if it records one."""
+    machine = report.get("machine")
+    if isinstance(machine, dict):
+        return machine.get("cpu")
+    if isinstance(machine, str):  # "2 cores (model name)"
+        found = re.search(r"\((.*)\)", machine)
+        return found.group(1) if found else machine
+    return None
+
+
+def machines_text(machines: dict[str, str | None]) -> str:
+    """`machines` (benchmark -> CPU or None) as the header's account of where each ran."""
+    by_cpu: dict[str, list[str]] = {}
+    for name, cpu in machines.items():
+        by_cpu.setdefault(cpu or EARLIER_MACHINE, []).append(name.replace("_", " "))
+    return "; ".join(f"{', '.join(names)} on {cpu}" for cpu, names in by_cpu.items())
+
+
 def markdown(rows, machine):
     lines = [
         f"Measured by `benchmarks/run_all.py` on {machine}. Times are wall clock of later calls (compiled); "
@@ -282,11 +307,12 @@ def main():
         for name in opts.only or BENCHMARKS:
             if (HERE / f"bench_{name}.py").exists():
                 elapsed[name] = run(name, opts.quick)
-    rows = []
+    rows, machines = [], {}
     for name in BENCHMARKS:
         report = _load(name)
         if report is not None:
             rows += EXTRACT[name](report)
+            machines[name] = run_machine(report)
         if name == "fit" and (RESULTS / "bench_fit_problems.json").exists():
             rows += rows_fit_problems(json.loads((RESULTS / "bench_fit_problems.json").read_text()))
     cpu = platform.processor() or platform.machine()
@@ -294,7 +320,7 @@ def main():
         cpu = next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name"))
     except (OSError, StopIteration):
         pass
-    machine = f"{os.cpu_count()} CPU cores ({cpu}), float64, {platform.system()}"
+    machine = f"{os.cpu_count()} CPU cores, float64, {platform.system()} ({machines_text(machines)}; summarised on {cpu})"
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "summary.json").write_text(json.dumps(dict(machine=machine, quick=opts.quick, elapsed_s=elapsed, rows=rows), indent=1))
     table = markdown(rows, machine)

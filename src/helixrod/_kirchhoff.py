@@ -354,15 +354,14 @@ def _integrate(rod, n0, m0, length, frame0, x0, ts, rtol, atol, *, solver, steps
         frame0 if with_frame else None,
         x0 if with_x else None,
     )
-    flow = _Flow(solver, steps, max_steps, adjoint, dense)
     if adjoint is None and steps is None:
-        # Inputs without tangents: a tangent would make JAX trace the loop's JVP, then drop it.
-        # Never differentiated, the loop needs no checkpoints (a plain while loop).
+        # The flow is never differentiated here (`_with_sensitivities` is): a plain loop with
+        # inputs without tangents (a tangent would make JAX trace the loop's JVP, then drop it).
         flow = _Flow(solver, steps, max_steps, diffrax.ForwardMode(), dense)
         solved = flow(*jax.lax.stop_gradient((rod, y0, length, ts, rtol, atol)))
         s, ys, result, num_steps = _with_sensitivities(rod, y0, length, ts, rtol, atol, solved, max_steps=max_steps)
     else:
-        s, ys, result, num_steps = flow(rod, y0, length, ts, rtol, atol)
+        s, ys, result, num_steps = _Flow(solver, steps, max_steps, adjoint, dense)(rod, y0, length, ts, rtol, atol)
     nan_if_invalid = lambda a: jnp.where(valid, a, jnp.nan)  # noqa: E731
     n, m = nan_if_invalid(ys.n), nan_if_invalid(ys.m)
     integrals = first_integrals(rod, n, m)

@@ -47,9 +47,12 @@ def test_default_directory_and_errors(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="min_compile_seconds must be >= 0"):
         hr.enable_compilation_cache(tmp_path / "x", min_compile_seconds=-1)
     previous = jax.config.jax_compilation_cache_dir
+    previous_threshold = jax.config.jax_persistent_cache_min_compile_time_secs
     try:
         assert hr.enable_compilation_cache(tmp_path / "new") == tmp_path / "new"
         assert jax.config.jax_compilation_cache_dir == str(tmp_path / "new") and (tmp_path / "new").is_dir()
+        assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0  # small programs kept too
     finally:
         jax.config.update("jax_compilation_cache_dir", previous)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", previous_threshold)
     assert os.environ.get(CACHE_ENVIRONMENT_VARIABLE) is None

@@ -151,12 +151,16 @@ class HelixModel(AbstractForwardModel):
     def residuals(self, rod, extra):
         # Only the fields used: over a large data set the other fields' values (and their
         # linearisation in the solver) would be computed and kept for nothing.
-        eq = helix_equilibria(rod, self.kappa, self.tau, fields=("force", "moment", "phi", "stable"))
+        fields = ("force", "moment", "phi", "stable")
+        if self.errors_in_variables:
+            eq, slopes = self._equilibria_with_slopes(rod, fields)
+        else:
+            eq = helix_equilibria(rod, self.kappa, self.tau, fields=fields)
         sF, sM = self.force_sigma[:, None], self.moment_sigma[:, None]
         errF = eq.force - self.force[:, None]
         errM = eq.moment - self.moment[:, None]
         if self.errors_in_variables:
-            rF, rM = self._whitened(rod, errF, errM, sF, sM)
+            rF, rM = self._whitened(slopes, errF, errM, sF, sM)
         else:
             rF, rM = errF / sF, errM / sM
         rF = jnp.where(self.force_observed[:, None], rF, 0.0)
@@ -185,7 +189,17 @@ class HelixModel(AbstractForwardModel):
         predicted = {"force": take(eq.force), "moment": take(eq.moment), "register": take(eq.phi), "slot": slot}
         return jnp.concatenate([take(r) for r in residuals]), predicted
 
-    def _whitened(self, rod, errF, errM, sF, sM):
+    def _equilibria_with_slopes(self, rod, fields):
+        """`helix_equilibria` at the data and the slopes of its force and moment along kappa
+        and tau (dF/dk, dM/dk, dF/dt, dM/dt), held fixed (no gradient: weights): one
+        linearisation of the same evaluation, applied to both directions, not a second
+        evaluation of the solver for the slopes."""
+        eq, linear = jax.linearize(lambda k, t: helix_equilibria(rod, k, t, fields=fields), self.kappa, self.tau)
+        ones, zeros = jnp.ones_like(self.kappa), jnp.zeros_like(self.kappa)
+        along_k, along_t = linear(ones, zeros), linear(zeros, ones)
+        return eq, jax.lax.stop_gradient((along_k.force, along_k.moment, along_t.force, along_t.moment))
+
+    def _whitened(self, slopes, errF, errM, sF, sM):
         # Effective variance: first-order propagation of the errors of kappa and tau (with
         # their correlation) into the 2x2 covariance of the model's (F, M) at each register,
         # added to that of the observed (F, M); the residual pair is whitened by its
@@ -193,15 +207,7 @@ class HelixModel(AbstractForwardModel):
         # effective-variance method the weights are held fixed in the Jacobian (no
         # gradient through the propagated covariance), which also spares XLA a second
         # derivative of the register solver.
-        def wrench(k, t):
-            eq = helix_equilibria(jax.lax.stop_gradient(rod), k, t, fields=("force", "moment"))
-            return eq.force, eq.moment
-
-        # One linearisation, applied to both directions (one more trace of the solver, not two).
-        _, linear = jax.linearize(wrench, self.kappa, self.tau)
-        ones, zeros = jnp.ones_like(self.kappa), jnp.zeros_like(self.kappa)
-        dF_dk, dM_dk = linear(ones, zeros)
-        dF_dt, dM_dt = linear(zeros, ones)
+        dF_dk, dM_dk, dF_dt, dM_dt = slopes
         ks, ts = self.kappa_sigma[:, None], self.tau_sigma[:, None]
         ckt = self.kappa_tau_correlation[:, None] * ks * ts
 

@@ -205,8 +205,7 @@ class HelixModel(AbstractForwardModel):
         # added to that of the observed (F, M); the residual pair is whitened by its
         # Cholesky factor (Orear, Am. J. Phys. 50 (1982) 912, in two dimensions).  As in the
         # effective-variance method the weights are held fixed in the Jacobian (no
-        # gradient through the propagated covariance), which also spares XLA a second
-        # derivative of the register solver.
+        # gradient through the propagated covariance: `slopes` carry none).
         dF_dk, dM_dk, dF_dt, dM_dt = slopes
         ks, ts = self.kappa_sigma[:, None], self.tau_sigma[:, None]
         ckt = self.kappa_tau_correlation[:, None] * ks * ts

@@ -49,6 +49,7 @@ from scipy.optimize import brentq  # noqa: E402
 import helixrod as hr  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
+from _machine import cpu_model  # noqa: E402
 from _numba_peer import numba_helix_equilibria  # noqa: E402
 from _numpy_peer import numpy_helix_equilibria  # noqa: E402
 
@@ -146,14 +147,6 @@ def errors_against(refs, found):
             dphi = max(dphi, float(angle_error(phi[i], p)))
             dforce = max(dforce, abs(force[i] - F) / max(1.0, abs(F)))
     return dphi, dforce
-
-
-def cpu_model() -> str:
-    """The CPU's model name (Linux), recorded with the results."""
-    try:
-        return next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name"))
-    except (OSError, StopIteration):
-        return platform.processor() or platform.machine()
 
 
 def timed(fn, repeats):

@@ -31,6 +31,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from _machine import cpu_model
+
 CASES = {
     "helix_equilibria": """
 rod = hr.Rod(1.0, 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
@@ -114,11 +116,7 @@ def main() -> None:
     parser.add_argument("--one-core", action="store_true", help="pin each process to one core (taskset -c 1)")
     args = parser.parse_args()
     out = Path(__file__).parent / "results" / "bench_first_calls.json"
-    try:
-        cpu = next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name"))
-    except (OSError, StopIteration):
-        cpu = "unknown CPU"
-    machine = f"{os.cpu_count()} cores ({cpu})"
+    machine = f"{os.cpu_count()} cores ({cpu_model()})"
     # Cases not run now keep their earlier results, from a run on this machine with the same --one-core.
     try:
         earlier = json.loads(out.read_text())

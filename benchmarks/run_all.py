@@ -25,6 +25,8 @@ import sys
 import time
 from pathlib import Path
 
+from _machine import cpu_model
+
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 BENCHMARKS = ("equilibria", "sweep", "kirchhoff", "fit", "finite", "tweezer", "first_calls")
@@ -315,12 +317,7 @@ def main():
             machines[name] = run_machine(report)
         if name == "fit" and (RESULTS / "bench_fit_problems.json").exists():
             rows += rows_fit_problems(json.loads((RESULTS / "bench_fit_problems.json").read_text()))
-    cpu = platform.processor() or platform.machine()
-    try:
-        cpu = next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    machine = f"{os.cpu_count()} CPU cores, float64, {platform.system()} ({machines_text(machines)}; summarised on {cpu})"
+    machine = f"{os.cpu_count()} CPU cores, float64, {platform.system()} ({machines_text(machines)}; summarised on {cpu_model()})"
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "summary.json").write_text(json.dumps(dict(machine=machine, quick=opts.quick, elapsed_s=elapsed, rows=rows), indent=1))
     table = markdown(rows, machine)

@@ -44,6 +44,12 @@ call = lambda i: hr.helix_equilibria(rod, k + 0.01 * i, t)
 rod = hr.Rod(1.0, 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
 call = lambda i: hr.solve_static(rod, jnp.array([0.1, -0.2, 0.5 + 0.01 * i]), jnp.array([0.3, 0.2, 0.9]), 40.0)
 """,
+    "solve_static (201 saved points)": """
+rod = hr.Rod(1.0, 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
+s = np.linspace(0.0, 40.0, 201)
+call = lambda i: hr.solve_static(rod, jnp.array([0.1, -0.2, 0.5 + 0.01 * i]), jnp.array([0.3, 0.2, 0.9]), 40.0, saveat=s,
+                                 outputs=("wrench", "frame", "centreline")).x
+""",
     "jax.grad(solve_static)": """
 rod = hr.Rod(1.0, 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
 end_moment = lambda n0: jnp.sum(hr.solve_static(rod, n0, jnp.array([0.3, 0.2, 0.9]), 40.0).m[-1] ** 2)

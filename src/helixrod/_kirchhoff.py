@@ -27,6 +27,7 @@ from ._geometry import helix_centreline, helix_frame
 from ._lie import BodyVelocityTerm, CommutatorFreeRK4, MuntheKaasRK, RodState, check_rotation, tangent
 from ._misc import differentiated_part, float_dtype, increasing_within, is_concrete
 from ._rod import check_one_rod
+from ._saved_points import diffeqsolve_saving
 from ._status import RESULTS, promote, raise_if_failed
 
 
@@ -393,7 +394,6 @@ class _Flow(eqx.Module):
 
     def __call__(self, rod, y0: RodState, length, ts, rtol, atol):
         geometric = isinstance(self.solver, (CommutatorFreeRK4, MuntheKaasRK))
-        save = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts)
         if self.steps is not None:
             controller = diffrax.ConstantStepSize()
             dt0 = length / self.steps
@@ -404,11 +404,11 @@ class _Flow(eqx.Module):
             dt0 = None
         term = BodyVelocityTerm(_body_velocity) if geometric else diffrax.ODETerm(_ambient_field)
         adjoint = diffrax.RecursiveCheckpointAdjoint() if self.adjoint is None else self.adjoint
-        sol = diffrax.diffeqsolve(
-            term, self.solver, 0.0, length, dt0, y0, args=rod, saveat=save, stepsize_controller=controller,
+        s, ys, sol = diffeqsolve_saving(
+            term, self.solver, 0.0, length, dt0, y0, ts=ts, args=rod, stepsize_controller=controller,
             max_steps=self.max_steps, adjoint=adjoint, throw=False,
         )
-        return sol.ts, sol.ys, sol.result, sol.stats["num_accepted_steps"]
+        return s, ys, sol.result, sol.stats["num_accepted_steps"]
 
 
 @eqx.filter_custom_jvp
@@ -472,14 +472,13 @@ def _sensitivities(diff, rest, length, ts, rtol, atol, max_steps):
 
     start = lambda q: split(q)[1]  # noqa: E731
     S0 = jax.vmap(lambda e: jax.jvp(start, (p,), (e,))[1], out_axes=-1)(basis)
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(field), diffrax.Dopri8(), 0.0, length, None, (start(p), S0), args=p,
-        saveat=diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts),
+    _, ys, sol = diffeqsolve_saving(
+        diffrax.ODETerm(field), diffrax.Dopri8(), 0.0, length, None, (start(p), S0), ts=ts, args=p,
         stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol), max_steps=max_steps,
         adjoint=diffrax.ForwardMode(), throw=False,
     )
     ok = sol.result == diffrax.RESULTS.successful
-    return jax.tree.map(lambda S: jnp.where(ok, S, jnp.nan), sol.ys[1])
+    return jax.tree.map(lambda S: jnp.where(ok, S, jnp.nan), ys[1])
 
 
 # -- uniform helices ---------------------------------------------------------------------

@@ -1,0 +1,76 @@
+"""Saved points without `diffrax.SaveAt(ts)` (`_saved_points.diffeqsolve_saving`): the
+values diffrax's own saving gives, through rejected steps, failed solves, `vmap` and
+forward-mode derivatives, and no host callback in `solve_static`'s program."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+from helpers import KIRCHHOFF_ROD, M0, N0
+
+import helixrod as hr
+from helixrod._saved_points import diffeqsolve_saving
+
+TS = jnp.linspace(0.0, 6.0, 41)
+
+
+def van_der_pol(t, y, mu):
+    x, v = y
+    return jnp.stack([v, mu * (1.0 - x**2) * v - x])
+
+
+def solve(ts, mu, y0, *, ours: bool, max_steps=4096):
+    """Dopri5 on a stiff-ish Van der Pol oscillator (many rejected steps), saved at `ts`."""
+    kwargs = dict(
+        args=mu, stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-8), max_steps=max_steps,
+        adjoint=diffrax.ForwardMode(), throw=False,
+    )
+    term, solver = diffrax.ODETerm(van_der_pol), diffrax.Dopri5()
+    if ours:
+        _, ys, sol = diffeqsolve_saving(term, solver, 0.0, 6.0, 0.01, y0, ts=ts, **kwargs)
+    else:
+        sol = diffrax.diffeqsolve(term, solver, 0.0, 6.0, 0.01, y0, saveat=diffrax.SaveAt(ts=ts), **kwargs)
+        ys = sol.ys
+    return ys, sol.stats["num_rejected_steps"], sol.result
+
+
+Y0 = jnp.array([2.0, 0.0])
+
+
+def test_the_values_of_diffrax_saving_through_rejected_steps():
+    ours, rejected, result = jax.jit(lambda ts: solve(ts, 6.0, Y0, ours=True))(TS)
+    theirs, rejected_theirs, _ = jax.jit(lambda ts: solve(ts, 6.0, Y0, ours=False))(TS)
+    assert int(rejected) == int(rejected_theirs) > 10 and result == diffrax.RESULTS.successful
+    np.testing.assert_array_equal(np.asarray(ours), np.asarray(theirs))
+    # Save points at the ends and several within one step.
+    crowded = jnp.concatenate([jnp.zeros(1), jnp.linspace(1.0, 1.001, 7), jnp.full(1, 6.0)])
+    np.testing.assert_array_equal(
+        np.asarray(jax.jit(lambda ts: solve(ts, 6.0, Y0, ours=True))(crowded)[0]),
+        np.asarray(jax.jit(lambda ts: solve(ts, 6.0, Y0, ours=False))(crowded)[0]),
+    )
+
+
+def test_a_failed_solve_leaves_the_unreached_points_at_infinity_as_diffrax_does():
+    ours, _, result = solve(TS, 6.0, Y0, ours=True, max_steps=20)
+    theirs, _, _ = solve(TS, 6.0, Y0, ours=False, max_steps=20)
+    assert result == diffrax.RESULTS.max_steps_reached
+    assert np.isinf(np.asarray(ours)[-1]).all() and np.isfinite(np.asarray(ours)[0]).all()
+    np.testing.assert_array_equal(np.asarray(ours), np.asarray(theirs))
+
+
+def test_vmap_and_forward_mode_derivatives():
+    mus = jnp.array([0.5, 3.0, 6.0])
+    batched = jax.vmap(lambda mu: solve(TS, mu, Y0, ours=True)[0])(mus)
+    for mu, ys in zip(mus, batched):
+        np.testing.assert_array_equal(np.asarray(ys), np.asarray(solve(TS, mu, Y0, ours=False)[0]))
+    jacobian = jax.jacfwd(lambda y0: solve(TS, 3.0, y0, ours=True)[0])(Y0)
+    np.testing.assert_allclose(jacobian, jax.jacfwd(lambda y0: solve(TS, 3.0, y0, ours=False)[0])(Y0), rtol=0, atol=1e-12)
+
+
+def test_solve_static_with_saved_points_carries_no_host_callback():
+    """Its program can be kept by JAX's persistent compilation cache (a host callback
+    would keep it out: diffrax checks `SaveAt(ts)` with one), in the default solve and in
+    its derivative."""
+    solve_static = lambda ts: hr.solve_static(KIRCHHOFF_ROD, N0, M0, 6.0, saveat=ts, outputs=("frame",), throw=False).frame  # noqa: E731
+    assert "callback" not in jax.jit(solve_static).lower(TS).as_text()
+    assert "callback" not in jax.jit(jax.jacfwd(lambda ts: solve_static(ts)[-1])).lower(TS).as_text()

@@ -37,6 +37,7 @@ already sets ``xla_backend_extra_options``, and `HELIXROD_COMPILER_OPTIONS=0` tu
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import inspect
 import os
@@ -119,6 +120,20 @@ try:  # No public JAX function tells whether a trace is active.
     from jax._src.core import trace_state_clean as _trace_state_clean
 except ImportError:  # pragma: no cover - depends on the JAX release
     _trace_state_clean = None
+
+try:  # ... nor leaves it for a computation on concrete values.
+    from jax._src.core import eval_context as _eval_context
+except ImportError:  # pragma: no cover - depends on the JAX release
+    _eval_context = contextlib.nullcontext
+
+
+def outside_transformations():
+    """A context in which a call on concrete values (no tracers) is a top-level call, though
+    a transformation is active (e.g. the primal part of an eager `jax.grad`, made concrete
+    by `jax.lax.stop_gradient`): a `jit` or `filter_jit` of this module then compiles with
+    its options and goes through the trace cache, as when called alone.  Without JAX's
+    private context (a later JAX) it does nothing: the call takes the plain path."""
+    return _eval_context()
 
 
 def _at_top_level() -> bool:

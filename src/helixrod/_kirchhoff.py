@@ -21,7 +21,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from ._compile import filter_jit
+from ._compile import filter_jit, outside_transformations
 from ._equilibria import HelixEquilibria
 from ._geometry import helix_centreline, helix_frame
 from ._lie import BodyVelocityTerm, CommutatorFreeRK4, MuntheKaasRK, RodState, check_rotation, tangent
@@ -325,41 +325,57 @@ def solve_static(
         if isinstance(steps, int):
             max_steps = max(max_steps, steps)
     # Array tolerances: a new tolerance does not recompile.
+    inputs = (rod, n0, m0, length, frame0, x0, ts, jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype))
+    outputs = (with_frame, store_frame, with_x)
+    solved = None
+    if adjoint is None and steps is None and not is_concrete(inputs):
+        primal = jax.lax.stop_gradient(inputs)
+        if is_concrete(primal):
+            # Differentiated outside any `jit` (e.g. an eager `jax.grad`): the flow, which is
+            # not differentiated, runs now as a program of its own, which a later process
+            # loads without tracing it; only the sensitivities are traced.
+            with outside_transformations():
+                solved = _flow_of(*primal, solver=solver, max_steps=max_steps, dense=dense, outputs=outputs)
     solution = _integrate(
-        rod, n0, m0, length, frame0, x0, ts, jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
-        solver=solver, steps=steps, max_steps=max_steps, adjoint=adjoint, dense=dense,
-        outputs=(with_frame, store_frame, with_x),
+        *inputs, solved, solver=solver, steps=steps, max_steps=max_steps, adjoint=adjoint, dense=dense, outputs=outputs
     )
     return raise_if_failed(solution, solution.result, "solve_static") if throw else solution
 
 
-@filter_jit(trace_cache=True)
-def _integrate(rod, n0, m0, length, frame0, x0, ts, rtol, atol, *, solver, steps, max_steps, adjoint, dense, outputs):
-    """`solve_static` after its checks, as one program of its own (an eager call is one
-    dispatch, compiled with helixrod's options)."""
-    with_frame, store_frame, with_x = outputs
-    dtype = n0.dtype
-    finite = jnp.all(jnp.isfinite(n0)) & jnp.all(jnp.isfinite(m0))
-    good_length = jnp.isfinite(length) & (length > 0)
-    # Invalid traced input (under vmap): integrate a harmless problem, flag it, return NaN.
-    valid = finite & good_length
-    n0 = jnp.where(valid, n0, 0.0)
-    m0 = jnp.where(valid, m0, 0.0)
+def _start(n0, m0, length, frame0, x0, ts, outputs):
+    """`(valid, y0, length, ts)`: the integration's start, its length and save points, with
+    invalid traced input (under `vmap`) replaced by a harmless problem and flagged."""
+    with_frame, _, with_x = outputs
+    valid = jnp.all(jnp.isfinite(n0)) & jnp.all(jnp.isfinite(m0)) & jnp.isfinite(length) & (length > 0)
     length = jnp.where(valid, length, 1.0)
-
     if ts is not None:
-        ts = jnp.where(valid, ts, jnp.linspace(0.0, 1.0, ts.shape[0], dtype=dtype))
-    y0 = RodState(
-        n0,
-        m0,
-        frame0 if with_frame else None,
-        x0 if with_x else None,
-    )
+        ts = jnp.where(valid, ts, jnp.linspace(0.0, 1.0, ts.shape[0], dtype=n0.dtype))
+    y0 = RodState(jnp.where(valid, n0, 0.0), jnp.where(valid, m0, 0.0), frame0 if with_frame else None, x0 if with_x else None)
+    return valid, y0, length, ts
+
+
+@filter_jit(trace_cache=True)
+def _flow_of(rod, n0, m0, length, frame0, x0, ts, rtol, atol, *, solver, max_steps, dense, outputs):
+    """The flow of `solve_static`'s default path alone (not differentiated), for `_integrate`'s
+    `solved`.  Measured: the first call of `jax.grad` through `solve_static` (L = 40,
+    `benchmarks/bench_first_calls.py`) ... """
+    _, y0, length, ts = _start(n0, m0, length, frame0, x0, ts, outputs)
+    return _Flow(solver, None, max_steps, diffrax.ForwardMode(), dense)(rod, y0, length, ts, rtol, atol)
+
+
+@filter_jit(trace_cache=True)
+def _integrate(rod, n0, m0, length, frame0, x0, ts, rtol, atol, solved, *, solver, steps, max_steps, adjoint, dense, outputs):
+    """`solve_static` after its checks, as one program of its own (an eager call is one
+    dispatch, compiled with helixrod's options).  `solved`: `None`, or the default path's
+    flow from `_flow_of` (integrated outside this program)."""
+    _, store_frame, with_x = outputs
+    valid, y0, length, ts = _start(n0, m0, length, frame0, x0, ts, outputs)
     if adjoint is None and steps is None:
-        # The flow is never differentiated here (`_with_sensitivities` is): a plain loop with
-        # inputs without tangents (a tangent would make JAX trace the loop's JVP, then drop it).
-        flow = _Flow(solver, steps, max_steps, diffrax.ForwardMode(), dense)
-        solved = flow(*jax.lax.stop_gradient((rod, y0, length, ts, rtol, atol)))
+        if solved is None:
+            # The flow is never differentiated here (`_with_sensitivities` is): a plain loop with
+            # inputs without tangents (a tangent would make JAX trace the loop's JVP, then drop it).
+            flow = _Flow(solver, steps, max_steps, diffrax.ForwardMode(), dense)
+            solved = flow(*jax.lax.stop_gradient((rod, y0, length, ts, rtol, atol)))
         s, ys, result, num_steps = _with_sensitivities(rod, y0, length, ts, rtol, atol, solved, max_steps=max_steps)
     else:
         s, ys, result, num_steps = _Flow(solver, steps, max_steps, adjoint, dense)(rod, y0, length, ts, rtol, atol)
@@ -374,7 +390,7 @@ def _integrate(rod, n0, m0, length, frame0, x0, ts, rtol, atol, *, solver, steps
         frame=nan_if_invalid(ys.frame) if store_frame else None,
         x=nan_if_invalid(ys.x) if with_x else None,
         first_integrals=integrals,
-        drift=integrals - first_integrals(rod, n0, m0)[None],
+        drift=integrals - first_integrals(rod, y0.n, y0.m)[None],
         result=RESULTS.where(valid, promote(result), RESULTS.invalid_input),
         valid_input=valid,
         num_steps=num_steps,

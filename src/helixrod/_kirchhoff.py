@@ -357,8 +357,14 @@ def _start(n0, m0, length, frame0, x0, ts, outputs):
 @filter_jit(trace_cache=True)
 def _flow_of(rod, n0, m0, length, frame0, x0, ts, rtol, atol, *, solver, max_steps, dense, outputs):
     """The flow of `solve_static`'s default path alone (not differentiated), for `_integrate`'s
-    `solved`.  Measured: the first call of `jax.grad` through `solve_static` (L = 40,
-    `benchmarks/bench_first_calls.py`) ... """
+    `solved`, when `solve_static` is differentiated outside any `jit`: then it is a top-level
+    call (`outside_transformations`), which the trace cache exports, so a later process
+    traces only the sensitivities.  Measured on the L = 40 gradient of
+    `benchmarks/bench_first_calls.py` (one core, fresh processes alternating with the code
+    before): first call with a warm cache 1.35-1.40 -> 0.97-1.00 s; cold 5.56-5.73 ->
+    5.93-6.00 s (one more program to export and compile); later eager calls 6.6-7.0 ->
+    7.2-7.4 ms (best of 30: a second program and its lookup).  Under a caller's `jit` nothing
+    changes."""
     _, y0, length, ts = _start(n0, m0, length, frame0, x0, ts, outputs)
     return _Flow(solver, None, max_steps, diffrax.ForwardMode(), dense)(rod, y0, length, ts, rtol, atol)
 

@@ -1,6 +1,7 @@
 """Register roots against an independent reference: dense scan + mpmath bisection."""
 
 import os
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -348,3 +349,35 @@ def test_wrench_kernel_matches_the_xla_program(rng):
     theirs = jax.grad(loss(lambda rod: _equilibria._fields_in_xla(rod, k, t, wrench)))(rods[1])
     for a, b in zip(jax.tree.leaves(ours), jax.tree.leaves(theirs)):
         np.testing.assert_allclose(a, b, rtol=1e-11)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="huge pages are Linux's")
+def test_register_kernel_advises_large_results_to_take_huge_pages():
+    """The kernel asks Linux for huge pages on results of 4 MB or more before it writes
+    them (XLA maps a large result afresh at every call; one page fault per 4 KB page cost
+    10^7 points 0.36 s): the mapping carries the advice (`hg` in its `VmFlags`), a small
+    one does not.  The advice itself, not whether huge pages are free, is what is tested."""
+    import mmap
+    import re
+
+    pytest.importorskip("numba")
+    from helixrod import _register_kernel
+
+    def advised(array):
+        address, inside = array.ctypes.data, False
+        with open("/proc/self/smaps") as smaps:
+            for line in smaps:
+                mapping = re.match(r"([0-9a-f]+)-([0-9a-f]+) ", line)
+                if mapping:
+                    inside = int(mapping[1], 16) <= address < int(mapping[2], 16)
+                elif inside and line.startswith("VmFlags:"):
+                    return "hg" in line.split()[1:]
+        raise AssertionError("the array's mapping is not in /proc/self/smaps")
+
+    for size, expected in ((8 << 20, True), (1 << 20, False)):
+        mapping = mmap.mmap(-1, size, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)  # a mapping of its own, as XLA's
+        array = np.frombuffer(mapping, np.float64)
+        _register_kernel._advise_huge_pages(array)
+        assert advised(array) == expected
+        del array
+        mapping.close()

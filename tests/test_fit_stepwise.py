@@ -131,3 +131,33 @@ def test_a_tweezer_fit_takes_the_same_steps_as_the_optimistix_loop(monkeypatch):
     assert abs(int(stepwise.n_steps) - int(looped.n_steps)) <= 3
     for name in stepwise.params:
         assert float(stepwise.params[name]) == pytest.approx(float(looped.params[name]), rel=1e-8), name
+
+
+def test_one_compiled_step_whatever_device_placement_the_model_returns():
+    """A model whose results come committed to a device (a program exported by the trace
+    cache returns such) and a start that is not: the step is compiled once, not again for
+    the inputs' changed placement."""
+    import logging
+
+    records = []
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            records.append(record.getMessage())
+
+    t = T[:37]  # shapes of its own: the step is compiled here, whatever ran before
+
+    def committed_jacobian_at(q):
+        model = lambda q: 3.0 * (1 + q[0] * t) * jnp.exp(q[1] * t) - DATA[:37]  # noqa: E731
+        return jax.device_put((model(q), jax.jacfwd(model)(q)), jax.devices()[0])
+
+    handler, logger = Keep(), logging.getLogger("jax")
+    logger.addHandler(handler)
+    solver = make_solver("levenberg-marquardt", 1e-10, 1e-12, 1e-2)
+    try:
+        with jax.log_compiles(True):
+            z, _, result, steps = stepwise_least_squares(committed_jacobian_at, physical, jnp.asarray([1.0, 0.5]), solver, 20)
+    finally:
+        logger.removeHandler(handler)
+    assert int(steps) > 2 and result_name(result) == "successful"
+    assert sum("Compiling jit(_step)" in message for message in records) == 1, [m for m in records if "_step" in m]

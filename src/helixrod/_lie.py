@@ -393,22 +393,29 @@ class MuntheKaasRK(diffrax.AbstractAdaptiveSolver):
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         h = t1 - t0
+        stages = len(self.b_sol)
+        # The stages as a loop over the tableau's rows, not unrolled: one copy of the stage
+        # (an exponential, the vector field, dexp^{-1}) in the program instead of one per stage.
+        rows = np.zeros((stages - 1, stages))
+        for i, row in enumerate(self.a_lower):
+            rows[i, : len(row)] = row
+        rows, c = jnp.asarray(rows, dtype=h.dtype), jnp.asarray(self.c, dtype=h.dtype)
+
+        def theta_of(weights, ks):
+            return h * (weights @ ks[:, 0]), h * (weights @ ks[:, 1])
+
+        def stage(i, ks):
+            theta = theta_of(rows[i], ks)
+            k = terms.vf(t0 + c[i] * h, act(y0, *theta), args)
+            return ks.at[i + 1].set(jnp.stack(_dexpinv(theta, k)))
+
         k = terms.vf(t0, y0, args)
-        ks = [k]  # dexpinv-corrected stage velocities
-
-        def theta_of(row):
-            # A contraction of the stacked stages: XLA keeps each stage in memory instead
-            # of fusing (and so recomputing) the whole chain of stages into every use.
-            weights = jnp.asarray(row, dtype=h.dtype)
-            return tuple(h * (weights @ jnp.stack([k[i] for k in ks[: len(row)]])) for i in range(2))
-
-        for c, row in zip(self.c, self.a_lower):
-            theta = theta_of(row)
-            k = terms.vf(t0 + c * h, act(y0, *theta), args)
-            ks.append(_dexpinv(theta, k))
-        y1 = act(y0, *theta_of(self.b_sol))
-        y_error = tangent(y1, *theta_of(self.b_error))
-        return y1, y_error, _dense_info(y0, self.dense_weights, ks), None, diffrax.RESULTS.successful
+        ks = jnp.zeros((stages, 2, 3), dtype=h.dtype).at[0].set(jnp.stack(k))
+        ks = jax.lax.fori_loop(0, stages - 1, stage, ks)  # dexpinv-corrected stage velocities
+        y1 = act(y0, *theta_of(jnp.asarray(self.b_sol, dtype=h.dtype), ks))
+        y_error = tangent(y1, *theta_of(jnp.asarray(self.b_error, dtype=h.dtype), ks))
+        stage_list = [(ks[i, 0], ks[i, 1]) for i in range(stages)]
+        return y1, y_error, _dense_info(y0, self.dense_weights, stage_list), None, diffrax.RESULTS.successful
 
     def func(self, terms, t0, y0, args):
         return tangent(y0, *terms.vf(t0, y0, args))

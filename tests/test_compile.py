@@ -148,3 +148,38 @@ def test_import_compiles_small_loops_into_one_kernel(setting):
     out = subprocess.run([sys.executable, "-c", _LOOP_PROGRAM], env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == ("True" if setting == "1" else "False")
+
+
+@pytest.mark.parametrize(("release", "added"), [("0.10.1", False), ("0.10.2", True), ("0.11.2", False)])
+def test_dot_library_fusion_request_follows_the_release_and_the_environment(monkeypatch, release, added):
+    # An unknown flag in XLA_FLAGS aborts the process: only the release it was measured with.
+    monkeypatch.setattr(_compile.metadata, "version", lambda name: release)
+    environ = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    assert _compile.request_dot_library_fusions(environ) is added
+    expected = "--xla_force_host_platform_device_count=2" + (" --xla_cpu_experimental_ynn_fusion_type=dot" if added else "")
+    assert environ["XLA_FLAGS"] == expected
+    users = {"XLA_FLAGS": "--xla_cpu_experimental_ynn_fusion_type=dot,eltwise"}
+    assert not _compile.request_dot_library_fusions(users) and users["XLA_FLAGS"].endswith("dot,eltwise")
+    off = {_compile.OPTIONS_ENVIRONMENT_VARIABLE: "0"}
+    assert not _compile.request_dot_library_fusions(off) and "XLA_FLAGS" not in off
+
+
+# Elementwise arithmetic and a reduction over a (4000, 14) array: XLA's CPU backend of jaxlib
+# 0.10.2 hands it to a YNNPACK library fusion by default; not once helixrod is imported.
+_ELEMENTWISE_PROGRAM = """
+import helixrod, jax, jax.numpy as jnp
+jax.config.update("jax_enable_x64", True)
+f = lambda x: jnp.sum(jnp.sin(x) * jnp.cos(x) + x * x, axis=1)
+print("ynn_fusion" in jax.jit(f).lower(jnp.ones((4000, 14))).compile().as_text())
+"""
+
+
+@pytest.mark.skipif(not (0, 10, 2) <= _compile._jaxlib_version() < (0, 11), reason="the flag of jaxlib 0.10.2")
+@pytest.mark.parametrize("setting", ["0", "1"])
+def test_import_leaves_only_dots_to_library_fusions(setting):
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env[_compile.OPTIONS_ENVIRONMENT_VARIABLE] = setting
+    env["JAX_PLATFORMS"] = "cpu"
+    out = subprocess.run([sys.executable, "-c", _ELEMENTWISE_PROGRAM], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == ("False" if setting == "1" else "True")

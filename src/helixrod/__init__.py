@@ -3,7 +3,8 @@
 Results are quoted in float64: call ``jax.config.update("jax_enable_x64", True)`` before
 creating arrays (helixrod does not change JAX's configuration).  On import, before anything
 is compiled, it asks XLA's CPU backend to compile loops of up to 1 MB into single kernels
-(``XLA_FLAGS``; see `helixrod._compile`; ``HELIXROD_COMPILER_OPTIONS=0`` turns it off).
+and to hand only dots to its YNNPACK library fusions (``XLA_FLAGS``; see `helixrod._compile`;
+``HELIXROD_COMPILER_OPTIONS=0`` turns both off).
 """
 
 from importlib import metadata as _metadata
@@ -11,6 +12,7 @@ from importlib import metadata as _metadata
 from . import _compile
 
 _compile.request_small_loop_kernels()
+_compile.request_dot_library_fusions()
 
 from . import dna as dna, plot as plot
 from ._bvp import (

@@ -33,6 +33,17 @@ points 5.4 -> 0.71 ms against 2.6 -> 0.79 ms at the end only; `solve_boundary_va
 `fit_stiffness` unchanged; first calls unchanged.  It is process-wide: the loops of
 the caller's own programs compile the same way.  It is left alone when ``XLA_FLAGS``
 already sets ``xla_backend_extra_options``, and `HELIXROD_COMPILER_OPTIONS=0` turns it off.
+
+A last process-wide setting: jaxlib 0.10.2's CPU backend hands chains of elementwise
+operations (and reductions) on larger arrays to YNNPACK "library fusions", each a call into
+the library instead of a loop XLA writes itself.  For helixrod's batched arithmetic that is
+several times slower: `request_dot_library_fusions` leaves YNNPACK the dots alone.
+Measured on 2 cores (fresh processes, the flag against none): `jax.jit(jax.grad(...))` of
+the forces of `helix_equilibria` at 10^5 points 19.4-21.4 -> 4.8-4.9 ms; a vmapped batch of
+1000 `solve_static` solves 300-302 -> 152-154 us a solve; `helices_under_load` 2.31-2.36 ->
+1.75-1.79 ms; `fit_stiffness` (60 helices) 5.7-6.7 -> 5.1-5.4 ms; one `solve_static` and
+`solve_boundary_value` unchanged within noise.  Like the loop threshold it is process-wide
+and left alone when ``XLA_FLAGS`` already names it.
 """
 
 from __future__ import annotations
@@ -113,6 +124,25 @@ def request_small_loop_kernels(environ=os.environ) -> bool:
         return False
     setting = f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold={SMALL_LOOP_BYTES}"
     environ["XLA_FLAGS"] = f"{flags} {setting}".strip()
+    return True
+
+
+#: The library fusions XLA's CPU backend may hand to YNNPACK (jaxlib 0.10.2: dots,
+#: elementwise chains and reductions by default): dots only.
+LIBRARY_FUSIONS = "dot"
+
+
+def request_dot_library_fusions(environ=os.environ) -> bool:
+    """Ask XLA's CPU backend (through ``XLA_FLAGS``) to hand only dots to its YNNPACK library
+    fusions, not chains of elementwise operations (see the module docstring).  Returns whether
+    the flag was added: on jaxlib 0.10.2 up to 0.11 only (the release it was measured with;
+    an unknown flag in ``XLA_FLAGS`` aborts the process), not when
+    `HELIXROD_COMPILER_OPTIONS=0`, and not when ``XLA_FLAGS`` already sets it."""
+    flags = environ.get("XLA_FLAGS", "")
+    release = _jaxlib_version()
+    if not _settings_apply(environ) or not (0, 10, 2) <= release < (0, 11) or "xla_cpu_experimental_ynn_fusion_type" in flags:
+        return False
+    environ["XLA_FLAGS"] = f"{flags} --xla_cpu_experimental_ynn_fusion_type={LIBRARY_FUSIONS}".strip()
     return True
 
 

@@ -399,9 +399,10 @@ class MuntheKaasRK(diffrax.AbstractAdaptiveSolver):
         # stage.  Measured (one core, fresh processes, against the unrolled stages): the
         # default solve's XLA compilation 3.4 -> 0.65 s, `solve_static`'s first call (L = 40)
         # 4.0 -> 1.1 s; later calls faster too, 1.86 -> 1.62 ms there and 0.39 -> 0.36 ms on
-        # the non-helical solve of `benchmarks/bench_kirchhoff.py`.  Not under `vmap`: 1000
-        # solves in lockstep took 300-317 us a solve against 204 (the stages' buffer is read
-        # whole at every stage; also unrolled, and with dots: the formulation, not the loop).
+        # the non-helical solve of `benchmarks/bench_kirchhoff.py`.  Under `vmap` (1000 solves
+        # in lockstep) 300-317 us a solve against 204 with XLA's YNNPACK elementwise fusions,
+        # which ran each stage's combination as a library call; 152-168 us without them
+        # (`_compile.request_dot_library_fusions`).
         rows = np.zeros((stages - 1, stages))
         for i, row in enumerate(self.a_lower):
             rows[i, : len(row)] = row

@@ -366,7 +366,14 @@ def _flow_of(rod, n0, m0, length, frame0, x0, ts, rtol, atol, *, solver, max_ste
     7.2-7.4 ms (best of 30: a second program and its lookup).  Under a caller's `jit` nothing
     changes."""
     _, y0, length, ts = _start(n0, m0, length, frame0, x0, ts, outputs)
-    return _Flow(solver, None, max_steps, diffrax.ForwardMode(), dense)(rod, y0, length, ts, rtol, atol)
+    return _undifferentiated_flow(rod, y0, length, ts, rtol, atol, solver=solver, max_steps=max_steps, dense=dense)
+
+
+def _undifferentiated_flow(rod, y0, length, ts, rtol, atol, *, solver, max_steps, dense):
+    """The default path's flow, never differentiated (`_with_sensitivities` is): a plain loop
+    with inputs without tangents (a tangent would make JAX trace the loop's JVP, then drop it)."""
+    flow = _Flow(solver, None, max_steps, diffrax.ForwardMode(), dense)
+    return flow(*jax.lax.stop_gradient((rod, y0, length, ts, rtol, atol)))
 
 
 @filter_jit(trace_cache=True)
@@ -378,10 +385,7 @@ def _integrate(rod, n0, m0, length, frame0, x0, ts, rtol, atol, solved, *, solve
     valid, y0, length, ts = _start(n0, m0, length, frame0, x0, ts, outputs)
     if adjoint is None and steps is None:
         if solved is None:
-            # The flow is never differentiated here (`_with_sensitivities` is): a plain loop with
-            # inputs without tangents (a tangent would make JAX trace the loop's JVP, then drop it).
-            flow = _Flow(solver, steps, max_steps, diffrax.ForwardMode(), dense)
-            solved = flow(*jax.lax.stop_gradient((rod, y0, length, ts, rtol, atol)))
+            solved = _undifferentiated_flow(rod, y0, length, ts, rtol, atol, solver=solver, max_steps=max_steps, dense=dense)
         s, ys, result, num_steps = _with_sensitivities(rod, y0, length, ts, rtol, atol, solved, max_steps=max_steps)
     else:
         s, ys, result, num_steps = _Flow(solver, steps, max_steps, adjoint, dense)(rod, y0, length, ts, rtol, atol)

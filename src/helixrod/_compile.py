@@ -119,11 +119,17 @@ def request_small_loop_kernels(environ=os.environ) -> bool:
     release it was measured with, or when ``XLA_FLAGS`` already sets XLA's backend extra
     options (the user's choice stands).  XLA reads the flag at the process's first
     compilation; after that it has no effect."""
+    setting = f"xla_cpu_small_while_loop_byte_threshold={SMALL_LOOP_BYTES}"
+    return _settings_apply(environ) and _add_xla_flag(environ, "xla_backend_extra_options", setting)
+
+
+def _add_xla_flag(environ, name: str, value: str) -> bool:
+    """Append ``--name=value`` to ``XLA_FLAGS`` in `environ` unless it already names `name`
+    (the user's choice stands); whether it was added."""
     flags = environ.get("XLA_FLAGS", "")
-    if not _settings_apply(environ) or "xla_backend_extra_options" in flags:
+    if name in flags:
         return False
-    setting = f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold={SMALL_LOOP_BYTES}"
-    environ["XLA_FLAGS"] = f"{flags} {setting}".strip()
+    environ["XLA_FLAGS"] = f"{flags} --{name}={value}".strip()
     return True
 
 
@@ -138,12 +144,8 @@ def request_dot_library_fusions(environ=os.environ) -> bool:
     the flag was added: on jaxlib 0.10.2 up to 0.11 only (the release it was measured with;
     an unknown flag in ``XLA_FLAGS`` aborts the process), not when
     `HELIXROD_COMPILER_OPTIONS=0`, and not when ``XLA_FLAGS`` already sets it."""
-    flags = environ.get("XLA_FLAGS", "")
-    release = _jaxlib_version()
-    if not _settings_apply(environ) or not (0, 10, 2) <= release < (0, 11) or "xla_cpu_experimental_ynn_fusion_type" in flags:
-        return False
-    environ["XLA_FLAGS"] = f"{flags} --xla_cpu_experimental_ynn_fusion_type={LIBRARY_FUSIONS}".strip()
-    return True
+    measured = (0, 10, 2) <= _jaxlib_version() < (0, 11)
+    return _settings_apply(environ) and measured and _add_xla_flag(environ, "xla_cpu_experimental_ynn_fusion_type", LIBRARY_FUSIONS)
 
 
 try:  # No public JAX function tells whether a trace is active.

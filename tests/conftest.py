@@ -113,3 +113,20 @@ def pytest_terminal_summary(terminalreporter):
 @pytest.fixture
 def rng():
     return np.random.default_rng(20261122)
+
+
+@pytest.fixture
+def exported_programs(tmp_path):
+    """The trace cache on in `tmp_path` for one test (the directory of its exported programs),
+    and this process's programs, refusals and counts as they were after it."""
+    from helixrod import _trace_cache
+
+    saved = dict(_trace_cache.counts)
+    _trace_cache.enable(tmp_path)
+    try:
+        yield tmp_path / _trace_cache.SUBDIRECTORY
+    finally:
+        _trace_cache.enable(None)
+        _trace_cache._programs.clear()
+        _trace_cache._refused.clear()
+        _trace_cache.counts.update(saved)

@@ -208,22 +208,16 @@ def test_default_second_derivatives_match_differences_of_the_gradient():
     np.testing.assert_allclose(hessian, hessian.T, rtol=0, atol=1e-9 * scale)
 
 
-def test_an_eager_gradient_runs_the_flow_as_a_program_of_its_own(tmp_path):
+def test_an_eager_gradient_runs_the_flow_as_a_program_of_its_own(exported_programs):
     """An eager `jax.grad` (no caller's `jit`): the flow, which is not differentiated, runs
     as a top-level program (`_kirchhoff._flow_of`), which the trace cache exports so that a
     later process calls it without tracing; only the sensitivities are traced.  Expected:
     one exported program, and the gradient of `jax.jit(jax.grad(...))` to round-off."""
     end_moment = lambda n0: jnp.sum(hr.solve_static(ROD, n0, M1, 2.0).m[-1] ** 2)  # noqa: E731
-    _trace_cache.enable(tmp_path)
-    try:
-        exported = _trace_cache.counts["exported"]
-        eager = jax.grad(end_moment)(N1)
-        assert _trace_cache.counts["exported"] == exported + 1
-        assert len(list((tmp_path / _trace_cache.SUBDIRECTORY).glob("*.export"))) == 1
-    finally:
-        _trace_cache.enable(None)
-        _trace_cache._programs.clear()
-        _trace_cache._refused.clear()
+    exported = _trace_cache.counts["exported"]
+    eager = jax.grad(end_moment)(N1)
+    assert _trace_cache.counts["exported"] == exported + 1
+    assert len(list(exported_programs.glob("*.export"))) == 1
     np.testing.assert_allclose(eager, jax.jit(jax.grad(end_moment))(N1), rtol=1e-13, atol=0)
 
 

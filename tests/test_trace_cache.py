@@ -67,31 +67,18 @@ def filtered(x, settings, power=2):
     return settings["scale"] * x**power + settings["offset"]
 
 
-@pytest.fixture
-def cache(tmp_path):
-    saved = dict(_trace_cache.counts)
-    _trace_cache.enable(tmp_path)
-    try:
-        yield tmp_path / _trace_cache.SUBDIRECTORY
-    finally:
-        _trace_cache.enable(None)
-        _trace_cache._programs.clear()
-        _trace_cache._refused.clear()
-        _trace_cache.counts.update(saved)
-
-
 def _new_process():
     """What a later process has: the files, none of this process's programs."""
     _trace_cache._programs.clear()
 
 
-def test_a_later_process_calls_the_exported_program_without_tracing(cache):
+def test_a_later_process_calls_the_exported_program_without_tracing(exported_programs):
     x, pair = jnp.arange(4.0), (jnp.asarray(2.0), jnp.asarray(3.0))
     expected = program.__wrapped__(x, pair, power=3)
     traces.clear()
     first = program(x, pair, power=3)
     assert traces == [3] and _trace_cache.counts["exported"] >= 1
-    assert len(list(cache.glob("*.export"))) == 1
+    assert len(list(exported_programs.glob("*.export"))) == 1
     _new_process()
     loaded_before = _trace_cache.counts["loaded"]
     later = program(x + 1.0, pair, power=3)  # same signature, new values
@@ -103,23 +90,23 @@ def test_a_later_process_calls_the_exported_program_without_tracing(cache):
             np.testing.assert_array_equal(np.asarray(u), np.asarray(v))
 
 
-def test_a_new_signature_is_a_new_program(cache):
+def test_a_new_signature_is_a_new_program(exported_programs):
     x, pair = jnp.arange(4.0), (jnp.asarray(2.0), jnp.asarray(3.0))
     program(x, pair, power=2)
     program(x, pair, power=3)  # a static argument
     program(jnp.arange(5.0), pair, power=2)  # a shape
     program(x, (jnp.asarray(2.0), jnp.asarray(3, jnp.int32)), power=2)  # a dtype
     program(x, [jnp.asarray(2.0), jnp.asarray(3.0)], power=2)  # a structure
-    assert len(list(cache.glob("*.export"))) == 5
+    assert len(list(exported_programs.glob("*.export"))) == 5
 
 
-def test_what_it_cannot_vouch_for_takes_the_plain_path(cache):
+def test_what_it_cannot_vouch_for_takes_the_plain_path(exported_programs):
     x = jnp.arange(3.0)
     assert float(scaled(Foreign(jnp.asarray(2.0)), x)[2]) == 4.0  # a foreign pytree node
     assert float(applied(jax.tree_util.Partial(Doubler()), x)[2]) == 4.0  # foreign static data in JAX's node
     refused = _trace_cache.counts["refused"]
     assert float(with_callback(x)[0]) == 1.0  # a host callback: jax.export refuses it
-    assert _trace_cache.counts["refused"] == refused + 1 and len(list(cache.glob("*.refused"))) == 1
+    assert _trace_cache.counts["refused"] == refused + 1 and len(list(exported_programs.glob("*.refused"))) == 1
     _new_process()
     _trace_cache._refused.clear()
     assert float(with_callback(x + 1.0)[0]) == 2.0  # a later process reads the refusal: no second attempt
@@ -131,40 +118,40 @@ def test_what_it_cannot_vouch_for_takes_the_plain_path(cache):
     assert traces == [2]
     with jax.default_device(jax.devices("cpu")[0]):  # the caller chose the device
         assert float(program(x, (x[0], x[1]), power=2)["value"]) == 5.0
-    assert list(cache.glob("*.export")) == []
+    assert list(exported_programs.glob("*.export")) == []
 
 
-def test_a_static_half_is_part_of_the_signature(cache):
+def test_a_static_half_is_part_of_the_signature(exported_programs):
     x = jnp.arange(3.0)
     arrays, static = split_arrays({"x": x, "scale": jnp.asarray(2.0), "power_of": 3})
     np.testing.assert_array_equal(np.asarray(halves(static, arrays)), 2.0 * np.arange(3.0) ** 3)
     arrays, static = split_arrays({"x": x, "scale": jnp.asarray(2.0), "power_of": 2})
     np.testing.assert_array_equal(np.asarray(halves(static, arrays)), 2.0 * np.arange(3.0) ** 2)
-    assert len(list(cache.glob("*.export"))) == 2
+    assert len(list(exported_programs.glob("*.export"))) == 2
     # A callable in the static half: no text names it the same way in another process.
     arrays, static = split_arrays({"x": x, "scale": jnp.asarray(2.0), "power_of": jnp.sin})
     np.testing.assert_allclose(np.asarray(halves(static, arrays)), 2.0 * np.sin(np.arange(3.0)))
-    assert len(list(cache.glob("*.export"))) == 2
+    assert len(list(exported_programs.glob("*.export"))) == 2
 
 
-def test_a_filter_jit_program_keys_its_non_array_leaves(cache):
+def test_a_filter_jit_program_keys_its_non_array_leaves(exported_programs):
     x = jnp.arange(3.0)
     settings = {"scale": jnp.asarray(2.0), "offset": 1.0}  # a Python float: static, as filter_jit has it
     traces.clear()
     first = filtered(x, settings, power=3)
     np.testing.assert_array_equal(np.asarray(first), 2.0 * np.arange(3.0) ** 3 + 1.0)
     np.testing.assert_array_equal(np.asarray(filtered(x, {"scale": jnp.asarray(2.0), "offset": 5.0})), 2.0 * np.arange(3.0) ** 2 + 5.0)
-    assert len(list(cache.glob("*.export"))) == 2 and traces == [("filtered", 3), ("filtered", 2)]
+    assert len(list(exported_programs.glob("*.export"))) == 2 and traces == [("filtered", 3), ("filtered", 2)]
     _new_process()
     later = filtered(x + 1.0, {"scale": jnp.asarray(3.0), "offset": 1.0}, power=3)
     np.testing.assert_array_equal(np.asarray(later), 3.0 * np.arange(1.0, 4.0) ** 3 + 1.0)
-    assert len(traces) == 2 and len(list(cache.glob("*.export"))) == 2
+    assert len(traces) == 2 and len(list(exported_programs.glob("*.export"))) == 2
 
 
-def test_a_damaged_file_is_exported_again(cache):
+def test_a_damaged_file_is_exported_again(exported_programs):
     x, pair = jnp.arange(4.0), (jnp.asarray(2.0), jnp.asarray(3.0))
     program(x, pair, power=4)
-    (path,) = cache.glob("*.export")
+    (path,) = exported_programs.glob("*.export")
     path.write_bytes(b"not a program")
     _new_process()
     exported = _trace_cache.counts["exported"]

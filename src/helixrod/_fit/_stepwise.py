@@ -95,17 +95,20 @@ def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver
         return z, jnp.asarray(jnp.inf, z.dtype), RESULTS.nonfinite, jnp.asarray(0, jnp.int32)
     arrays, static = split_arrays((solver, physical))
     r, J = jacobian_at(_physical_at(physical, z))
-    # Every input of `_step` committed to the model's device, at every step: the model's
-    # results come committed (an exported program's call) where the start is not, and JAX
-    # compiles a program again for inputs placed differently (measured: `_step` compiled
-    # twice in a tweezer fit's first call, 0.34 s of XLA each, within the run-to-run noise of
-    # that first call; a no-op for arrays already there).
-    device = next(iter(r.devices())) if isinstance(r, jax.Array) else jax.devices()[0]
-    z, r, J = jax.device_put((z, r, J), device)
+    # Every input of `_step` placed as the model's results are, at every step.  JAX compiles
+    # a program again for inputs placed differently (committed to a device or not): an
+    # exported program's call (the trace cache) returns committed results where the start is
+    # not (`_step` was compiled twice in a tweezer fit's first call, 0.34 s of XLA each); a
+    # plain one returns uncommitted results, and committing the step's inputs then made the
+    # points it returns committed, so that the model program, first called at the uncommitted
+    # start, was compiled again at the second point (the shape fit's, 12-14 s of XLA each).
+    device = next(iter(r.devices())) if isinstance(r, jax.Array) and r.committed else None
+    place = (lambda tree: tree) if device is None else functools.partial(jax.device_put, device=device)
+    z, r, J = place((z, r, J))
     dynamic = _start(static, arrays, z, r, J)
     terminate, result, steps = False, RESULTS.successful, 0
     while steps < max_steps:
-        z, dynamic, r, J = jax.device_put((z, dynamic, r, J), device)
+        z, dynamic, r, J = place((z, dynamic, r, J))
         z, dynamic, terminate, result, q_eval = _step(static, arrays, z, dynamic, r, J)
         steps += 1
         if steps < max_steps:

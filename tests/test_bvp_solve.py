@@ -248,6 +248,33 @@ def test_keywords_override_the_options():
 
 
 @pytest.mark.heavy
+def test_saved_states_differentiate_along_the_rod_the_length_and_the_saved_points():
+    """The states at saved points carry the derivatives of the integration that saves them
+    (`implicit`): along a stiffness, the length (which moves the pieces' saved points), a
+    saved point itself (the Kirchhoff rates there) and the load, on one and three pieces."""
+    rod0 = hr.Rod(1.0, 1.4, 0.8, K13=0.15, K23=-0.1, uhat=(0.3, 0.9, 0.35))
+    tight = dict(atol=1e-12, ode_rtol=1e-12, ode_atol=1e-12, stability_pieces=0, throw=False)
+
+    def outputs(p, segments):
+        K3, length, s_moved, force = p
+        rod = eqx.tree_at(lambda r: r.K3, rod0, K3)
+        saveat = jnp.stack([0.0, 0.3 * length, s_moved, 0.9 * length])
+        end = hr.Loaded((0.02 + force, 0.0, 0.05), (0.0, 0.03, 0.0))
+        sol = hr.solve_boundary_value(rod, length, end=end, saveat=saveat, segments=segments, **tight)
+        return jnp.concatenate([sol.x.ravel(), sol.frame.ravel(), sol.n.ravel(), sol.m.ravel(), sol.force])
+
+    p0 = jnp.array([0.8, 6.0, 3.1, 0.01])
+    for segments in (1, 3):
+        f = jax.jit(lambda p: outputs(p, segments))
+        J = jax.jit(jax.jacfwd(lambda p: outputs(p, segments)))(p0)
+        eps = 1e-5
+        fd = np.stack([(f(p0.at[i].add(eps)) - f(p0.at[i].add(-eps))) / (2 * eps) for i in range(4)], 1)
+        # Central differences of values accurate to ~1e-12: ~1e-7 of noise.
+        np.testing.assert_allclose(J, fd, rtol=1e-6, atol=2e-7)
+        assert float(np.abs(fd[:, 2]).max()) > 0.1  # the saved point's own derivative is exercised
+
+
+@pytest.mark.heavy
 def test_gradients_through_the_boundary_value_solve_match_central_differences():
     length = 1.5 * TURN
     h0, theta0 = (float(a) for a in hr.unloaded_observables(SPRING, length))

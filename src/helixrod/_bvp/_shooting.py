@@ -25,7 +25,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
 from .._geometry import unloaded_observables, unloaded_state
-from .._lie import gibbs, rotation_z, so3_exp, twist_angle
+from .._lie import gibbs, hat, rotation_z, so3_exp, twist_angle
 from .._misc import differentiated_part, no_gradient
 from ._bulk import bulk_helix_at
 from ._ends import CONTROL_INDEX, LOADED, TWEEZER, Clamped, EndCondition
@@ -33,34 +33,49 @@ from ._options import BoundaryValueOptions
 from ._root_finder import LevenbergMarquardtBroyden
 
 
-def piece_flow(theta, wrench, options: BoundaryValueOptions, ode_tol):
+def piece_flow(theta, wrench, options: BoundaryValueOptions, ode_tol, ts=None):
     """Integrate one piece from the identity pose at the origin with local start wrench
-    `wrench` (6,): the flat (18,) vector (p, R, n_end, m_end); NaN if the solve failed."""
+    `wrench` (6,): the flat (18,) vector (p, R, n_end, m_end); NaN if the solve failed.
+    With `ts` `(p,)`, increasing local arc lengths within the piece (repeats allowed): the
+    states there instead, `(p, 18)`, by the dense output of the same integration."""
     rod, piece = theta
-    sol = options.integrate(rod, wrench[:3], wrench[3:], piece, ode_tol)
-    out = jnp.concatenate([sol.x[-1], sol.frame[-1].reshape(9), sol.n[-1], sol.m[-1]])
-    return jnp.where(sol.ok, out, jnp.nan)
+    sol = options.integrate(rod, wrench[:3], wrench[3:], piece, ode_tol, saveat=ts)
+    out = jnp.concatenate([sol.x, sol.frame.reshape(-1, 9), sol.n, sol.m], -1)
+    return jnp.where(sol.ok, out[-1] if ts is None else out, jnp.nan)
+
+
+def flow_and_jacobian(theta, wrench, options: BoundaryValueOptions, ode_tol, theta_of=None, ts_of=None):
+    """One piece's flow (`piece_flow`: end position, frame, force and moment in the start
+    frame) and its derivatives `(6, 18)` along the six local start wrenches; `theta` = (rod,
+    piece length), `ode_tol` = (rtol, atol) of the tangent integrations.  With `theta_of` (a
+    function from a flat vector to (rod, piece length)), `theta` is such a vector `(P,)`
+    and the derivatives along its entries follow the six: `(6 + P, 18)` from one
+    integration.  With `ts_of` (a function from the piece length to local arc lengths
+    `(p,)`, `piece_flow`'s `ts`), the states there and their derivatives, `(p, 18)` and
+    `(6 + P, p, 18)`."""
+    if theta_of is None:
+        theta_of, theta = (lambda _, fixed=theta: fixed), jnp.zeros(0, wrench.dtype)
+
+    def one(w, q):
+        rod_and_piece = theta_of(q)
+        return piece_flow(rod_and_piece, w, options, ode_tol, None if ts_of is None else ts_of(rod_and_piece[1]))
+
+    basis = jnp.eye(6 + theta.size, dtype=wrench.dtype)
+    flows, jacobian = jax.vmap(lambda e: jax.jvp(one, (wrench, theta), (e[:6], e[6:])))(basis)
+    return flows[0], jacobian
 
 
 def flow_jacobian(theta, wrench, options: BoundaryValueOptions, ode_tol, theta_of=None):
-    """Derivatives `(6, 18)` of one piece's flow (`piece_flow`: end position, frame, force and
-    moment in the start frame) along the six local start wrenches; `theta` = (rod, piece
-    length), `ode_tol` = (rtol, atol) of the tangent integrations.  With `theta_of` (a
-    function from a flat vector to (rod, piece length)), `theta` is such a vector `(P,)`
-    and the derivatives along its entries follow the six: `(6 + P, 18)` from one
-    integration."""
-    if theta_of is None:
-        theta_of, theta = (lambda _, fixed=theta: fixed), jnp.zeros(0, wrench.dtype)
-    one = lambda w, q: piece_flow(theta_of(q), w, options, ode_tol)  # noqa: E731
-    basis = jnp.eye(6 + theta.size, dtype=wrench.dtype)
-    return jax.vmap(lambda e: jax.jvp(one, (wrench, theta), (e[:6], e[6:]))[1])(basis)
+    """The derivatives of `flow_and_jacobian` alone."""
+    return flow_and_jacobian(theta, wrench, options, ode_tol, theta_of)[1]
 
 
 def per_piece(fn, xs):
-    """`jax.vmap(fn)(xs)` over the pieces (leading axis); a single piece without `vmap`:
-    a batched integration loop was measured to cost about twice as much."""
-    if xs.shape[0] == 1:
-        return jax.tree.map(lambda a: a[None], fn(xs[0]))
+    """`jax.vmap(fn)(xs)` over the pieces (the leading axis of every leaf of `xs`); a single
+    piece without `vmap`: a batched integration loop was measured to cost about twice as
+    much."""
+    if jax.tree.leaves(xs)[0].shape[0] == 1:
+        return jax.tree.map(lambda a: a[None], fn(jax.tree.map(lambda a: a[0], xs)))
     return jax.vmap(fn)(xs)
 
 
@@ -227,28 +242,76 @@ def root(y0, args: ShootingArgs, options: BoundaryValueOptions):
     return sol.value, pieces, flows, residual, sol.result, sol.stats["num_steps"]
 
 
+def saved_local_times(saveat, piece, j):
+    """The arc lengths `saveat` local to piece `j` (of length `piece`), clipped to it: points
+    outside the piece land on its ends, where `saved_states` never selects them."""
+    return jnp.clip(saveat - j * piece, 0.0, piece)
+
+
+def saved_states(nodes, states, saveat, piece):
+    """(x, frame, n, m) at `saveat` `(p,)` (lab centreline and frame, director-frame wrench)
+    from the pieces' start `nodes` (`nodes_of`) and their local states at every saved point
+    `(k, p, 18)` (`piece_flow` at `saved_local_times`): each point from the piece it lies in."""
+    _, _, xs, frames = nodes
+    which = jnp.clip(jnp.floor(saveat / piece).astype(jnp.int32), 0, xs.shape[0] - 1)
+    local = states[which, jnp.arange(saveat.shape[0])]
+    x = xs[which] + jnp.einsum("pij,pj->pi", frames[which], local[:, :3])
+    frame = frames[which] @ local[:, 3:12].reshape(-1, 3, 3)
+    return x, frame, local[:, 12:15], local[:, 15:]
+
+
+def observed_states(y, args: ShootingArgs, options: BoundaryValueOptions, saveat):
+    """`saved_states` at the root `y`: each piece integrated once more, saving at the points
+    (no derivatives: see `implicit`)."""
+    k = options.segments
+    nodes, local = _local_wrenches(y, args, k)
+    piece = args.length / k
+
+    def one(wrench_and_index):
+        wrench, j = wrench_and_index
+        return piece_flow((args.rod, piece), wrench, options, args.ode_tol, saved_local_times(saveat, piece, j))
+
+    return saved_states(nodes, per_piece(one, (local, jnp.arange(k))), saveat, piece)
+
+
 @eqx.filter_custom_jvp
-def implicit(y, pieces, flows, args, *, options):
-    """The root `y` of the shooting equations at `args` and the `pieces` there, with the
-    derivatives of the implicit function theorem: $\\dot y = -J^{-1}\\,\\partial_\\theta F\\,
-    \\dot\\theta$ and $\\dot P = P_y\\dot y + \\partial_\\theta P\\,\\dot\\theta$, with the Jacobians
-    $J = F_y$, $P_y$, $\\partial_\\theta F$ and $\\partial_\\theta P$ from the `flows` there
-    and their derivatives along the six start wrenches and every differentiated scalar of
-    the rod and the length, integrated together at the ODE tolerance itself (the root solve
-    steers with looser ones; `flow_jacobian`): one integration of each piece, whatever the
-    number of tangent directions.  (Not
-    `optimistix.ImplicitAdjoint`: its linear solve raises on a non-finite input, so one
-    failed point would abort a differentiated batch; here a failed point gets NaN
-    derivatives.)"""
-    return y, pieces
+def implicit(y, pieces, flows, args, saveat, *, options):
+    """The root `y` of the shooting equations at `args`, the `pieces` there and the states
+    at `saveat` (`observed_states`; None where `saveat` is None), with the derivatives of
+    the implicit function theorem: $\dot y = -J^{-1}\,\partial_\theta F\,\dot\theta$ and
+    $\dot P = P_y\dot y + \partial_\theta P\,\dot\theta$ (the states likewise), with the
+    Jacobians $J = F_y$, $P_y$, $\partial_\theta F$ and $\partial_\theta P$ from the `flows`
+    there and their derivatives along the six start wrenches and every differentiated scalar
+    of the rod and the length, integrated together at the ODE tolerance itself (the root
+    solve steers with looser ones; `flow_and_jacobian`), the states at the saved points and
+    their derivatives by the dense output of that same integration: one integration of each
+    piece, whatever the number of tangent directions.  (Not `optimistix.ImplicitAdjoint`:
+    its linear solve raises on a non-finite input, so one failed point would abort a
+    differentiated batch; here a failed point gets NaN derivatives.  Nor a derivative of
+    `observed_states`' own integration: a differentiated copy of the integrator the more in
+    the program, measured on the shape fit of `benchmarks/bench_finite.py`: its Jacobian
+    program compiled in ~4.8 s more, of ~11.5.)"""
+    observed = None if saveat is None else observed_states(y, args, options, saveat)
+    return y, pieces, observed
 
 
 @implicit.def_jvp
 def _implicit_jvp(primals, tangents, *, options):
-    y, pieces, flows, args = primals
-    t_args = tangents[3]
+    y, pieces, flows, args, saveat = primals
+    t_args, t_saveat = tangents[3], tangents[4]
     if t_args is None or not jax.tree.leaves(t_args):
-        return (y, pieces), jax.tree.map(jnp.zeros_like, (y, pieces))
+        out = implicit(y, pieces, flows, args, saveat, options=options)
+        t_out = jax.tree.map(jnp.zeros_like, out)
+    else:
+        out, t_out = _implicit_tangents(y, pieces, flows, args, saveat, t_args, options)
+    if saveat is not None and t_saveat is not None:  # a saved point moves along the rod
+        rates = _state_rates(out[2], args.rod)
+        t_observed = jax.tree.map(lambda t, rate: t + rate * t_saveat.reshape((-1,) + (1,) * (rate.ndim - 1)), t_out[2], rates)
+        t_out = (t_out[0], t_out[1], t_observed)
+    return out, t_out
+
+
+def _implicit_tangents(y, pieces, flows, args, saveat, t_args, options: BoundaryValueOptions):
     k = options.segments
     diff, rest, t_diff = differentiated_part(args, t_args)
     # The flows depend on the arguments through the start wrenches and through the rod and
@@ -260,21 +323,47 @@ def _implicit_jvp(primals, tangents, *, options):
         return eqx.combine(rod, rest.rod), eqx.combine(length, rest.length) / k
 
     _, local = _local_wrenches(y, args, k)
-    jacobian = per_piece(lambda w: flow_jacobian(q, w, options, args.ode_tol[:2], theta_of), local)  # (k, 6 + P, 18)
+    if saveat is None:
+        jacobian = per_piece(lambda w: flow_jacobian(q, w, options, args.ode_tol[:2], theta_of), local)  # (k, 6 + P, 18)
+        saved = None
+    else:
+        # The saved points and the piece's end in one integration (the end last).
+        def one(wrench_and_index):
+            wrench, j = wrench_and_index
+            ts_of = lambda piece: jnp.append(saved_local_times(saveat, piece, j), piece)  # noqa: E731
+            return flow_and_jacobian(q, wrench, options, args.ode_tol[:2], theta_of, ts_of)
+
+        states, state_jacobian = per_piece(one, (local, jnp.arange(k)))  # (k, p + 1, 18), (k, 6 + P, p + 1, 18)
+        jacobian = state_jacobian[:, :, -1]
+        saved = (states[:, :-1].reshape(k, -1), state_jacobian[:, :, :-1].reshape(k, state_jacobian.shape[1], -1))
 
     def residual(z, d):
         theta = ravel_pytree((d.rod, d.length))[0]
         given = lambda w: _given_flows(w, theta, flows, jacobian)  # noqa: E731
-        r, (pieces, _) = _residual_and_flows(z, eqx.combine(d, rest), options, flows_of=given)
-        return r, pieces
+        a = eqx.combine(d, rest)
+        r, (pieces, _) = _residual_and_flows(z, a, options, flows_of=given)
+        observed = None
+        if saved is not None:
+            nodes, local = _local_wrenches(z, a, k)
+            observed = saved_states(nodes, _given_flows(local, theta, *saved).reshape(k, -1, 18), saveat, a.length / k)
+        return r, (pieces, observed)
 
-    _, (b, t_pieces) = jax.jvp(lambda d: residual(y, d), (diff,), (t_diff,))
-    jac, pieces_jac = _jacobian_columns(lambda z: residual(z, diff), y)
+    (_, (_, observed)), (b, t_rest) = jax.jvp(lambda d: residual(y, d), (diff,), (t_diff,))
+    jac, rest_jac = _jacobian_columns(lambda z: residual(z, diff), y)
     good = jnp.all(jnp.isfinite(jac))
     safe = jnp.where(good, jac, jnp.eye(y.size, dtype=y.dtype))
     t_y = jnp.where(good, -jnp.linalg.solve(safe, b), jnp.nan)
-    t_pieces = jax.tree.map(lambda a, t: t + a @ t_y, pieces_jac, t_pieces)
-    return (y, pieces), (t_y, t_pieces)
+    t_pieces, t_observed = jax.tree.map(lambda a, t: t + a @ t_y, rest_jac, t_rest)
+    return (y, pieces, observed), (t_y, t_pieces, t_observed)
+
+
+def _state_rates(observed, rod):
+    """d/ds of the saved (x, frame, n, m): $x' = De_3$, $D' = D\hat u$, $n' = n\times u$,
+    $m' = m\times u + n\times e_3$ (the static Kirchhoff equations in the director frame)."""
+    _, frame, n, m = observed
+    u = jax.vmap(rod.twist)(m)
+    e3 = jnp.broadcast_to(jnp.asarray([0.0, 0.0, 1.0], n.dtype), n.shape)
+    return frame[..., 2], frame @ hat(u), jnp.cross(n, u), jnp.cross(m, u) + jnp.cross(n, e3)
 
 
 def rebase(y, args: ShootingArgs, k: int) -> tuple[Array, ShootingArgs]:

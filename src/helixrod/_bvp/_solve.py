@@ -51,7 +51,6 @@ from ._shooting import (
     implicit,
     initial,
     jacobian_tolerance,
-    per_piece,
     rebase,
     root,
     warm_start_of,
@@ -128,40 +127,14 @@ class BoundaryValueSolution(eqx.Module):
         )
 
 
-def _observe(args: ShootingArgs, options: BoundaryValueOptions, N, M0, xs, frames, saveat, x_last, frame_last):
-    """(s, x, frame, n, m) at `saveat` (None: at s = L, from the pieces already computed)."""
-    k = options.segments
+def _observe(args: ShootingArgs, N, M0, saveat, observed, x_last, frame_last):
+    """(s, x, frame, n, m) at `saveat` (`observed`: the states there, `implicit`), or where
+    `saveat` is None at s = L, from the end of the last piece."""
     if saveat is None:
         n_last = frame_last.T @ N
         m_last = frame_last.T @ (M0 - jnp.cross(x_last - args.start.position, N))
         return (args.length[None], x_last[None], frame_last[None], n_last[None], m_last[None])
-    piece = args.length / k
-    moments = M0[None] - jnp.cross(xs - args.start.position[None], N[None])
-
-    def one(j):
-        # From save point to save point, each interval a solve of its own (its end is a step
-        # value: the solve's accuracy and its derivatives), not one solve that saves at
-        # `saveat`: diffrax checks saved times with host callbacks, which JAX neither stores
-        # in the persistent compilation cache nor exports.  Save times outside the piece are
-        # clipped to its ends (repeated save times are allowed) and never selected below.
-        local = jnp.clip(saveat - j * piece, 0.0, piece)
-        start = (xs[j], frames[j], frames[j].T @ N, frames[j].T @ moments[j], jnp.zeros((), local.dtype))
-
-        def interval(state, s_next):
-            x, frame, n, m, s_prev = state
-            ds = s_next - s_prev
-            moves = ds > 0
-            sol = options.integrate(args.rod, n, m, jnp.where(moves, ds, 1.0), args.ode_tol, frame0=frame, x0=x)
-            ends = (sol.x[-1], sol.frame[-1], sol.n[-1], sol.m[-1])
-            state = tuple(jnp.where(moves, new, old) for new, old in zip(ends, state[:4])) + (s_next,)
-            return state, state[:4]
-
-        return jax.lax.scan(interval, start, local)[1]
-
-    x, frame, n, m = per_piece(one, jnp.arange(k))
-    which = jnp.clip(jnp.floor(saveat / piece).astype(jnp.int32), 0, k - 1)
-    idx = jnp.arange(saveat.shape[0])
-    return saveat, x[which, idx], frame[which, idx], n[which, idx], m[which, idx]
+    return (saveat, *observed)
 
 
 def ode_tolerances(options: BoundaryValueOptions, dtype):
@@ -271,7 +244,7 @@ def solve(rod, length, start: Clamped, end: EndCondition, guess, saveat, options
     # Intermediate homotopy steps need not converge: only the last solve counts.
     y, pieces, flows, residual, result, n = root(y0, args, options)
     steps = steps + n
-    y, (nodes, ends) = implicit(y, pieces, flows, args, options=options)
+    y, (nodes, ends), observed = implicit(y, pieces, flows, args, saveat, options=options)
     (N, M0, xs, frames), (x_end, frame_end, force_end, moment_end) = nodes, ends
     residual = jax.lax.stop_gradient(jnp.where(jnp.isfinite(residual) & valid, residual, jnp.inf))
     tolerance = jnp.asarray(10 * options.atol, dtype)
@@ -281,7 +254,7 @@ def solve(rod, length, start: Clamped, end: EndCondition, guess, saveat, options
     )
     result = RESULTS.where(valid, result, RESULTS.invalid_input)
 
-    out = _observe(args, options, N, M0, xs, frames, saveat, x_end[-1], frame_end[-1])
+    out = _observe(args, N, M0, saveat, observed, x_end[-1], frame_end[-1])
     if options.stability_pieces > 0:
         index, margin, push = _stability_where_solved(rod, length, end, N, M0, xs, frames, result, options)
     else:

@@ -192,8 +192,8 @@ def _bending_stiffness(rod):
 
 def solve_with_warm_start(rod, length, start: Clamped, end: EndCondition, guess, saveat, options: BoundaryValueOptions, guess_kind="helix"):
     """`solve`, with the guess first made a `WarmStart` (`as_warm_start`; not under
-    continuation, which starts from the unloaded rod)."""
-    if options.continuation == 0:
+    continuation, which starts from the unloaded rod, nor for a guess that is one)."""
+    if options.continuation == 0 and not isinstance(guess, WarmStart):
         guess = as_warm_start(rod, length, start, end, guess, options, guess_kind)
     return solve(rod, length, start, end, guess, saveat, options, guess_kind)
 
@@ -528,10 +528,17 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
             return None
         # In NumPy: JAX would compile each of these operations eagerly (~0.1 s).
         frame, push = np.asarray(start.frame), np.asarray(trial.unstable_direction)
+        dtype = trial.force.dtype
         for sign in (1.0, -1.0, 4.0, -4.0):
             N = np.asarray(trial.force) + sign * push[:3]
             M0 = np.asarray(trial.moment0) + sign * push[3:]
-            pushed = solved((frame.T @ N, frame.T @ M0), options)
+            # Single shooting needs no nodes: the pushed wrench is a warm start as it is, with
+            # no program to convert it (`as_warm_start` compiled for a wrench, 0.3-0.4 s).
+            guess = (
+                WarmStart(N.astype(dtype), M0.astype(dtype), trial.node_position, trial.node_frame)
+                if options.segments == 1 else (frame.T @ N, frame.T @ M0)
+            )
+            pushed = solved(guess, options)
             if acceptable(pushed):
                 return pushed
         return None

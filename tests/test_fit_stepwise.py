@@ -133,10 +133,9 @@ def test_a_tweezer_fit_takes_the_same_steps_as_the_optimistix_loop(monkeypatch):
         assert float(stepwise.params[name]) == pytest.approx(float(looped.params[name]), rel=1e-8), name
 
 
-def test_one_compiled_step_whatever_device_placement_the_model_returns():
-    """A model whose results come committed to a device (a program exported by the trace
-    cache returns such) and a start that is not: the step is compiled once, not again for
-    the inputs' changed placement."""
+def _fit_compiling(jacobian_at, max_steps):
+    """A stepwise fit of the test model with `jacobian_at`, and JAX's log messages of its
+    compilations."""
     import logging
 
     records = []
@@ -145,22 +144,34 @@ def test_one_compiled_step_whatever_device_placement_the_model_returns():
         def emit(self, record):
             records.append(record.getMessage())
 
+    handler, logger = Keep(), logging.getLogger("jax")
+    logger.addHandler(handler)
+    solver = make_solver("levenberg-marquardt", 1e-10, 1e-12, 1e-2)
+    try:
+        with jax.log_compiles(True):
+            _, _, result, steps = stepwise_least_squares(jacobian_at, physical, jnp.asarray([1.0, 0.5]), solver, max_steps)
+    finally:
+        logger.removeHandler(handler)
+    assert int(steps) > 2 and result_name(result) == "successful"
+    return records
+
+
+def _compilations(records, name):
+    return sum(f"Compiling jit({name})" in message for message in records)
+
+
+def test_one_compiled_step_whatever_device_placement_the_model_returns():
+    """A model whose results come committed to a device (a program exported by the trace
+    cache returns such) and a start that is not: the step is compiled once, not again for
+    the inputs' changed placement."""
     t = T[:37]  # shapes of its own: the step is compiled here, whatever ran before
 
     def committed_jacobian_at(q):
         model = lambda q: 3.0 * (1 + q[0] * t) * jnp.exp(q[1] * t) - DATA[:37]  # noqa: E731
         return jax.device_put((model(q), jax.jacfwd(model)(q)), jax.devices()[0])
 
-    handler, logger = Keep(), logging.getLogger("jax")
-    logger.addHandler(handler)
-    solver = make_solver("levenberg-marquardt", 1e-10, 1e-12, 1e-2)
-    try:
-        with jax.log_compiles(True):
-            z, _, result, steps = stepwise_least_squares(committed_jacobian_at, physical, jnp.asarray([1.0, 0.5]), solver, 20)
-    finally:
-        logger.removeHandler(handler)
-    assert int(steps) > 2 and result_name(result) == "successful"
-    assert sum("Compiling jit(_step)" in message for message in records) == 1, [m for m in records if "_step" in m]
+    records = _fit_compiling(committed_jacobian_at, 20)
+    assert _compilations(records, "_step") == 1, [m for m in records if "_step" in m]
 
 
 def test_one_compiled_model_whatever_placement_the_steps_return():
@@ -168,14 +179,6 @@ def test_one_compiled_model_whatever_placement_the_steps_return():
     off): the points the steps hand it stay uncommitted as its start was, and it is compiled
     once (committing the steps' inputs had it compiled again at the second point: the shape
     fit's Jacobian program, 12-14 s of XLA each)."""
-    import logging
-
-    records = []
-
-    class Keep(logging.Handler):
-        def emit(self, record):
-            records.append(record.getMessage())
-
     t = T[:33]  # shapes of their own: compiled here, whatever ran before
 
     @jax.jit
@@ -183,14 +186,6 @@ def test_one_compiled_model_whatever_placement_the_steps_return():
         model = lambda q: 3.0 * (1 + q[0] * t) * jnp.exp(q[1] * t) - DATA[:33]  # noqa: E731
         return model(q), jax.jacfwd(model)(q)
 
-    handler, logger = Keep(), logging.getLogger("jax")
-    logger.addHandler(handler)
-    solver = make_solver("levenberg-marquardt", 1e-10, 1e-12, 1e-2)
-    try:
-        with jax.log_compiles(True):
-            z, _, result, steps = stepwise_least_squares(plain_model, physical, jnp.asarray([1.0, 0.5]), solver, 100)
-    finally:
-        logger.removeHandler(handler)
-    assert int(steps) > 2 and result_name(result) == "successful"
-    assert sum("Compiling jit(plain_model)" in message for message in records) == 1, [m for m in records if "plain_model" in m]
-    assert sum("Compiling jit(_step)" in message for message in records) == 1, [m for m in records if "_step" in m]
+    records = _fit_compiling(plain_model, 100)
+    assert _compilations(records, "plain_model") == 1, [m for m in records if "plain_model" in m]
+    assert _compilations(records, "_step") == 1, [m for m in records if "_step" in m]

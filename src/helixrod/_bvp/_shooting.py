@@ -25,7 +25,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
 from .._geometry import unloaded_observables, unloaded_state
-from .._lie import gibbs, hat, rotation_z, so3_exp, twist_angle
+from .._lie import RodState, gibbs, rotation_z, so3_exp, tangent, twist_angle
 from .._misc import differentiated_part, no_gradient
 from ._bulk import bulk_helix_at
 from ._ends import CONTROL_INDEX, LOADED, TWEEZER, Clamped, EndCondition
@@ -359,12 +359,14 @@ def _implicit_tangents(y, pieces, flows, args, saveat, t_args, options: Boundary
 
 
 def _state_rates(observed, rod):
-    """d/ds of the saved (x, frame, n, m): $x' = De_3$, $D' = D\\hat u$, $n' = n\\times u$,
-    $m' = m\\times u + n\\times e_3$ (the static Kirchhoff equations in the director frame)."""
-    _, frame, n, m = observed
-    u = jax.vmap(rod.twist)(m)
-    e3 = jnp.broadcast_to(jnp.asarray([0.0, 0.0, 1.0], n.dtype), n.shape)
-    return frame[..., 2], frame @ hat(u), jnp.cross(n, u), jnp.cross(m, u) + jnp.cross(n, e3)
+    """d/ds of the saved (x, frame, n, m): the static Kirchhoff equations' velocity
+    (`tangent` of the body twist $(u, e_3)$) at each point."""
+
+    def rates(x, frame, n, m):
+        velocity = tangent(RodState(n, m, frame, x), rod.twist(m), jnp.asarray([0.0, 0.0, 1.0], n.dtype))
+        return velocity.x, velocity.frame, velocity.n, velocity.m
+
+    return jax.vmap(rates)(*observed)
 
 
 def rebase(y, args: ShootingArgs, k: int) -> tuple[Array, ShootingArgs]:

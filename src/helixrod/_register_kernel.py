@@ -609,7 +609,7 @@ def _solve_handler(frame_address):
             _advise_huge_pages(result)
         for flags in (valid, tangent):
             _advise_huge_pages(flags)
-        _advise_huge_pages(continuum)  # one flag a point: not a member of the tuples above
+        _advise_huge_pages(continuum)  # 1-d, the flags 2-d: numba loops over tuples of one type only
         _solve_points(A, B, C, cos_out, sin_out, valid, tangent, continuum)
     return _pointer(0)
 

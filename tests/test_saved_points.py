@@ -58,6 +58,27 @@ def test_a_failed_solve_leaves_the_unreached_points_at_infinity_as_diffrax_does(
     np.testing.assert_array_equal(np.asarray(ours), np.asarray(theirs))
 
 
+def test_a_state_of_several_shapes_and_dtypes_is_saved_as_diffrax_saves_it():
+    """The saved points are kept as rows of one buffer: a pytree state of a scalar, a
+    matrix and a float32 vector comes back shaped and typed as diffrax's saving gives it."""
+
+    def field(t, y, mu):
+        x, v = y["xv"][0], y["xv"][1]
+        return dict(xv=jnp.stack([v, mu * (1.0 - x**2) * v - x]), rotation=y["rotation"] * v,
+                    slow=jnp.full(3, x, jnp.float32), scalar=-y["scalar"])
+
+    y0 = dict(xv=Y0, rotation=jnp.eye(2), slow=jnp.arange(3, dtype=jnp.float32), scalar=jnp.asarray(1.0))
+    kwargs = dict(args=3.0, stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-8),
+                  adjoint=diffrax.ForwardMode(), throw=False)
+    _, ours, _ = diffeqsolve_saving(diffrax.ODETerm(field), diffrax.Dopri5(), 0.0, 6.0, 0.01, y0, ts=TS, **kwargs)
+    theirs = diffrax.diffeqsolve(diffrax.ODETerm(field), diffrax.Dopri5(), 0.0, 6.0, 0.01, y0,
+                                 saveat=diffrax.SaveAt(ts=TS), **kwargs).ys
+    for name in y0:
+        assert ours[name].shape == theirs[name].shape == TS.shape + y0[name].shape
+        assert ours[name].dtype == theirs[name].dtype
+        np.testing.assert_array_equal(np.asarray(ours[name]), np.asarray(theirs[name]))
+
+
 def test_vmap_and_forward_mode_derivatives():
     mus = jnp.array([0.5, 3.0, 6.0])
     batched = jax.vmap(lambda mu: solve(TS, mu, Y0, ours=True)[0])(mus)

@@ -198,8 +198,8 @@ def _combine(coefficients, ks):
 class LieGroupInterpolation(diffrax.AbstractLocalInterpolation):
     r"""Dense output of one Lie-group step from $t_0$ to $t_1$: $y(t) = y_0\exp\theta(r)$,
     $r = (t - t_0)/(t_1 - t_0)$, with $\theta(r) = h\sum_i b_i(r)\,k_i$ in the Lie algebra
-    $\mathfrak{se}(3)$: `k` the stage velocities (rotation and translation parts, shape
-    `(stages, 3)` each), $h = t_1 - t_0$, and the weights $b_i(r) = \sum_{j\ge 1}$
+    $\mathfrak{se}(3)$: `k` the stage velocities (shape `(stages, 2, 3)`: rotation and
+    translation parts), $h = t_1 - t_0$, and the weights $b_i(r) = \sum_{j\ge 1}$
     `weights[i, j-1]` $r^j$ of the method's continuous extension.
 
     It is the continuous extension of the Runge--Kutta method that the solver applies to
@@ -213,7 +213,7 @@ class LieGroupInterpolation(diffrax.AbstractLocalInterpolation):
     t0: Array
     t1: Array
     y0: RodState
-    k: tuple[Float[Array, "stages 3"], Float[Array, "stages 3"]]
+    k: Float[Array, "stages 2 3"]
     weights: Float[Array, "stages p"]
 
     def evaluate(self, t0, t1=None, left=True):
@@ -228,18 +228,27 @@ class LieGroupInterpolation(diffrax.AbstractLocalInterpolation):
         for j in range(self.weights.shape[1] - 2, -1, -1):
             b = self.weights[:, j] + r * b
         b = (h * r) * b
-        w, v = (jnp.sum(b[:, None] * k, axis=0) for k in self.k)
+        w, v = jnp.sum(b[:, None, None] * self.k, axis=0)
         return act(self.y0, w, v)
 
 
 def _dense_info(y0, matrix, ks):
-    """`LieGroupInterpolation` fields from the stage velocities `ks` ((w, v) pairs in the
-    algebra) and the continuous extension's weights `matrix` (stage x power of r).  Stages
-    whose weights are all zero (four of Dopri8's fourteen) are left out: every saved point
-    would otherwise multiply them by zero."""
+    """`LieGroupInterpolation` fields from the stage velocities `ks` (shape `(stages, 2, 3)`,
+    (w, v) in the algebra) and the continuous extension's weights `matrix` (stage x power
+    of r).  Stages whose weights are all zero (four of Dopri8's fourteen) are left out:
+    every saved point would otherwise multiply them by zero.  They are cut as runs of
+    consecutive stages (two slices for Dopri8): a step that saves builds its interpolation
+    inside the integrator's loop, where every slice of a stage was a kernel of its own
+    (twenty for Dopri8, a fifth of that loop's kernels)."""
     used = [i for i, row in enumerate(matrix) if any(c != 0 for c in row)]
-    return dict(y0=y0, k=tuple(jnp.stack([ks[j][i] for j in used]) for i in range(2)),
-                weights=jnp.asarray([matrix[j] for j in used], dtype=ks[0][0].dtype))
+    runs = [[used[0]]]
+    for i in used[1:]:
+        if i == runs[-1][-1] + 1:
+            runs[-1].append(i)
+        else:
+            runs.append([i])
+    k = jnp.concatenate([ks[run[0] : run[-1] + 1] for run in runs]) if len(runs) > 1 else ks[runs[0][0] : runs[0][-1] + 1]
+    return dict(y0=y0, k=k, weights=jnp.asarray([matrix[j] for j in used], dtype=ks.dtype))
 
 
 # The third-order continuous extension of the classical RK4 weights, b_i(r) = sum_j
@@ -303,7 +312,8 @@ class CommutatorFreeRK4(diffrax.AbstractAdaptiveSolver):
         y_error = tangent(y1, *_combine((h / 6, -h / 6), (k4, k5)))
         thetas = (None, _combine((0.5 * h,), (k1,)), _combine((0.5 * h,), (k2,)), _combine((h,), (k3,)))
         corrected = [k1] + [_combine((1.0, 0.5), (k, _bracket(theta, k))) for theta, k in zip(thetas[1:], ks[1:])]
-        return y1, y_error, _dense_info(y0, _RK4_DENSE, corrected), k5, diffrax.RESULTS.successful
+        stages = jnp.stack([jnp.stack(k) for k in corrected])
+        return y1, y_error, _dense_info(y0, _RK4_DENSE, stages), k5, diffrax.RESULTS.successful
 
     def func(self, terms, t0, y0, args):
         return tangent(y0, *terms.vf(t0, y0, args))
@@ -424,8 +434,7 @@ class MuntheKaasRK(diffrax.AbstractAdaptiveSolver):
         ks = jax.lax.fori_loop(0, stages - 1, stage, ks)  # dexpinv-corrected stage velocities
         y1 = act(y0, *theta_of(jnp.asarray(self.b_sol, dtype=h.dtype), ks))
         y_error = tangent(y1, *theta_of(jnp.asarray(self.b_error, dtype=h.dtype), ks))
-        stage_list = [(ks[i, 0], ks[i, 1]) for i in range(stages)]
-        return y1, y_error, _dense_info(y0, self.dense_weights, stage_list), None, diffrax.RESULTS.successful
+        return y1, y_error, _dense_info(y0, self.dense_weights, ks), None, diffrax.RESULTS.successful
 
     def func(self, terms, t0, y0, args):
         return tangent(y0, *terms.vf(t0, y0, args))

@@ -15,9 +15,13 @@ written inside the step (measured: 201 saved points 123 us against 92 us with di
 saving, a planar elastica of 24 steps, one core).  So `_PassingSolver` hands the step's
 interpolation data on with its error estimate (the one output diffrax passes from the
 solver to the controller, as `(error, dense_info)`), and `_SavingController` strips it,
-asks the wrapped controller, and saves from the accepted steps into buffers in its own
+asks the wrapped controller, and saves from the accepted steps into a buffer in its own
 state, which diffrax carries as it is.  The values are those of diffrax's saving: the
-same interpolation at the same points.
+same interpolation at the same points.  The buffer holds each point's state as one row
+(`_flat`), one update per point and one fill before the solve instead of one per leaf
+of the state: with the rod's four leaves that cut the fixed cost of saving by half (a
+planar elastica of 24 steps, one core: 66 -> 60 us with one saved point, against 55 us
+saving the end only).
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 
@@ -74,8 +79,8 @@ class _SavingController(diffrax.AbstractStepSizeController):
     """`controller`, which also saves the solution at the increasing points `ts` from each
     accepted step's interpolation (`interpolation_cls` of the solver), with
     `_PassingSolver`.  Its state: `(controller's state, index of the next point, saved
-    values)`, the values `inf` where no step reached (a failed solve), as diffrax leaves
-    them."""
+    values)`, the values (a row of `_flat(y)` per point) `inf` where no step reached (a
+    failed solve), as diffrax leaves them."""
 
     controller: diffrax.AbstractStepSizeController
     ts: Float[Array, " points"]
@@ -86,8 +91,8 @@ class _SavingController(diffrax.AbstractStepSizeController):
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
         tnext, state = self.controller.init(terms, t0, t1, y0, dt0, args, func, error_order)
-        buffers = jax.tree.map(lambda leaf: jnp.full(self.ts.shape + jnp.shape(leaf), jnp.inf, jnp.result_type(leaf)), y0)
-        return tnext, (state, jnp.asarray(0), buffers)
+        row = _flat(y0)
+        return tnext, (state, jnp.asarray(0), jnp.full(self.ts.shape + row.shape, jnp.inf, row.dtype))
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
         y_error, dense_info = y_error
@@ -104,11 +109,27 @@ class _SavingController(diffrax.AbstractStepSizeController):
 
         def save(carry):
             i, saved = carry
-            y = interpolation.evaluate(self.ts[i])
-            return i + 1, jax.tree.map(lambda buffer, value: buffer.at[i].set(value), saved, y)
+            return i + 1, saved.at[i].set(_flat(interpolation.evaluate(self.ts[i])))
 
         index, buffers = jax.lax.while_loop(passed, save, (index, buffers))
         return keep, tprev, tnext, made_jump, (state, index, buffers), result
+
+
+def _flat(y):
+    """The state `y` as one row: each saved point is one row of one buffer, written by one
+    update (not one a leaf), and the buffer is filled once before the loop."""
+    return jnp.concatenate([jnp.ravel(leaf) for leaf in jax.tree.leaves(y)])
+
+
+def _unflat(rows, like):
+    """Rows of `_flat(y)` as states shaped like `like`, with a leading axis (in the rows'
+    dtype, which is diffrax's: it promotes every leaf of the state with the times)."""
+    leaves, structure = jax.tree.flatten(like)
+    ends = np.cumsum([np.size(leaf) for leaf in leaves])
+    return jax.tree.unflatten(structure, [
+        rows[:, end - np.size(leaf) : end].reshape(rows.shape[:1] + np.shape(leaf))
+        for leaf, end in zip(leaves, ends)
+    ])
 
 
 def diffeqsolve_saving(terms, solver, t0, t1, dt0, y0, *, ts, stepsize_controller, adjoint, **kwargs):
@@ -135,4 +156,4 @@ def diffeqsolve_saving(terms, solver, t0, t1, dt0, y0, *, ts, stepsize_controlle
         terms, _PassingSolver(solver), t0, t1, dt0, y0, saveat=diffrax.SaveAt(controller_state=True),
         stepsize_controller=controller, adjoint=adjoint, **kwargs,
     )
-    return ts, sol.controller_state[2], sol
+    return ts, _unflat(sol.controller_state[2], y0), sol

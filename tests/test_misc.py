@@ -100,6 +100,37 @@ def test_no_gradient_stops_floating_point_leaves_only():
     assert float(jax.grad(f)(2.0)) == 2.0  # d/dx (c x) with c = x held fixed
 
 
+def test_solve_small_derivatives_in_the_matrix_to_second_order_match_lapack(rng):
+    """`solve_small`'s own derivative rule (solves with the same elimination) against
+    `jnp.linalg.solve` differentiated by JAX: first derivatives in both modes, second
+    derivatives (forward over forward, reverse over forward), under `vmap`, with a matrix
+    that needs row swaps."""
+    A0 = rng.normal(size=(5, 5))
+    A0[0, 0] = 1e-3  # a pivot search that swaps rows
+    b0 = rng.normal(size=5)
+    directions = rng.normal(size=(3, 5, 5))
+
+    def solution(solve):
+        def of(t):  # the matrix and the right-hand side along a curve through (A0, b0)
+            A = A0 + t[0] * directions[0] + t[1] ** 2 * directions[1] + jnp.sin(t[2]) * directions[2]
+            return solve(A, jnp.cos(t[0]) * b0 + t[1] * A0[:, 1])
+        return of
+
+    t0 = jnp.array([0.3, -0.2, 0.5])
+    ours, lapack = solution(_misc.solve_small), solution(jnp.linalg.solve)
+    np.testing.assert_allclose(jax.jacfwd(ours)(t0), jax.jacfwd(lapack)(t0), rtol=1e-11, atol=1e-12)
+    np.testing.assert_allclose(jax.jacrev(ours)(t0), jax.jacfwd(lapack)(t0), rtol=1e-11, atol=1e-12)
+    second = jax.jacfwd(jax.jacfwd(lapack))(t0)
+    np.testing.assert_allclose(jax.jacfwd(jax.jacfwd(ours))(t0), second, rtol=1e-10, atol=1e-11)
+    np.testing.assert_allclose(jax.jacrev(jax.jacfwd(ours))(t0), second, rtol=1e-10, atol=1e-11)
+    points = t0[None, :] + 0.1 * jnp.asarray(rng.normal(size=(4, 3)))
+    np.testing.assert_allclose(jax.vmap(jax.jacfwd(ours))(points), jax.vmap(jax.jacfwd(lapack))(points), rtol=1e-11, atol=1e-12)
+    # Several right-hand sides, and the inverse.
+    np.testing.assert_allclose(
+        jax.jacfwd(lambda A: _misc.inverse_small(A))(jnp.asarray(A0)), jax.jacfwd(jnp.linalg.inv)(jnp.asarray(A0)), rtol=1e-10, atol=1e-10
+    )
+
+
 def test_solve_small_matches_lapack_and_pivots(rng):
     # Jitted, as inside the models that use it (eagerly, each unrolled step of the
     # elimination is compiled on its own: ~30 s of this test).

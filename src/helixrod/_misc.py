@@ -8,6 +8,7 @@ never spoils a `vmap`-ped batch.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -145,25 +146,77 @@ def jacobian_forward(fn, x: Array, *, has_aux: bool = False, through_loops: bool
     return (jacobian, aux) if has_aux else jacobian
 
 
-def _eliminate(A: Array, b: Array) -> tuple[Array, Array]:
-    """Gaussian elimination with partial pivoting of `[A | b]` (`A` `(n, n)`, `b` `(n, k)`),
-    unrolled in jnp operations: the reduced (upper-triangular) augmented matrix and the
-    parity (+1/-1) of its row permutation."""
-    n = A.shape[-1]
-    M = jnp.concatenate([A, b], axis=1)
+def _eliminate(M: Array) -> tuple[Array, Array, Array, Array]:
+    """Gaussian elimination with partial pivoting on the first n columns of `M` `(n, n + k)`
+    (a matrix, or a matrix and right-hand sides), unrolled in jnp operations: `(orders,
+    factors, reduced, parity)`, the row order and the multipliers of each of the n
+    eliminations (`(n, n)` each), the reduced `M` (upper-triangular in its first n columns)
+    and the parity (+1/-1) of the row permutation."""
+    n = M.shape[0]
     rows = jnp.arange(n)
-    parity = jnp.ones((), A.dtype)
+    parity = jnp.ones((), M.dtype)
+    orders, factors = [], []
     for k in range(n):
         pivot = k + jnp.argmax(jnp.abs(M[k:, k]))
         order = jnp.where(rows == k, pivot, jnp.where(rows == pivot, k, rows))
         parity = jnp.where(pivot == k, parity, -parity)
         M = M[order]
-        factors = jnp.where(rows > k, M[:, k] / M[k, k], 0.0)
-        M = M - factors[:, None] * M[k][None, :]
-    return M, parity
+        factor = jnp.where(rows > k, M[:, k] / M[k, k], 0.0)
+        M = M - factor[:, None] * M[k][None, :]
+        orders.append(order)
+        factors.append(factor)
+    return jnp.stack(orders), jnp.stack(factors), M, parity
 
 
-def solve_small(A: ArrayLike, b: ArrayLike) -> Array:
+def _back_substitute(U: Array, c: Array) -> Array:
+    """$U^{-1} c$ for the upper-triangular `U` of `_eliminate` (linear in `c`: reverse mode
+    transposes it)."""
+    x = jnp.zeros_like(c)
+    for k in reversed(range(U.shape[0])):
+        x = x.at[k].set((c[k] - U[k] @ x) / U[k, k])
+    return x
+
+
+def _as_columns(solve):
+    """`solve(A, b)` of `(n, k)` right-hand sides for `b` `(n,)` or `(n, k)`."""
+
+    @functools.wraps(solve)
+    def solve_any(A, b):
+        A, b = jnp.asarray(A), jnp.asarray(b)
+        return solve(A, b.reshape(A.shape[-1], -1)).reshape(b.shape)
+
+    return solve_any
+
+
+def _solve_jvp(solve, tangent_solve):
+    """The derivative rule $dx = A^{-1}(db - dA\\,x)$ of `solve`, with `tangent_solve` for
+    the tangents."""
+
+    def rule(primals, tangents):
+        A, b = (jnp.asarray(p) for p in primals)
+        dA, db = (jnp.asarray(t) for t in tangents)
+        x = solve(A, b)
+        n = A.shape[-1]
+        return x, tangent_solve(A, db - (dA @ x.reshape(n, -1)).reshape(x.shape))
+
+    return rule
+
+
+@jax.custom_jvp
+@_as_columns
+def _factored_solve(A: Array, b: Array) -> Array:
+    # A's eliminations, then the same on b: under `vmap` over b alone (the tangents of
+    # `jax.jacfwd`) A's part is not batched, so that each tangent costs a substitution.
+    orders, factors, U, _ = _eliminate(A)
+    for k in range(A.shape[-1]):
+        b = b[orders[k]]
+        b = b - factors[k][:, None] * b[k][None, :]
+    return _back_substitute(U, b)
+
+
+@jax.custom_jvp
+@_as_columns
+def solve_small(A: Array, b: Array) -> Array:
     """$A^{-1} b$ for one small square system (n <= ~12; `b` `(n,)` or `(n, k)`; batch with
     `vmap`) by Gaussian elimination with partial pivoting, unrolled in jnp operations.
 
@@ -171,16 +224,22 @@ def solve_small(A: ArrayLike, b: ArrayLike) -> Array:
     `jnp.linalg.solve`, whose LAPACK calls (getrf/trsm through XLA's FFI) deadlocked in
     jaxlib 0.10.2 on 2 CPU cores when a batch of them ran under the concurrency-optimised
     scheduler (seen in a 2000-point tweezer fit and in a 100 x 100 stability atlas); pure
-    arithmetic also fuses with its neighbours.  Differentiable in both modes; a singular
-    matrix gives inf/NaN as `jnp.linalg.solve` would."""
-    A = jnp.asarray(A)
-    b = jnp.asarray(b)
+    arithmetic also fuses with its neighbours.  A singular matrix gives inf/NaN as
+    `jnp.linalg.solve` would.
+
+    Differentiable in both modes and to any order, by $dx = A^{-1}(db - dA\\,x)$ with the
+    tangents solved by `_factored_solve` (itself differentiated the same way): the
+    elimination of A is shared by all tangents and never differentiated op by op.
+    Measured on a 5 x 5 solve's second derivatives (1 x 8 tangents, 738 points, one core):
+    4.5-4.8 -> 2.2 ms, XLA compilation 2.8-2.9 -> 1.8 s; the bundled tweezer example's fit
+    1.15 -> 0.82 s.  Undifferentiated it eliminates `[A | b]` in one pass, as before."""
+    reduced = _eliminate(jnp.concatenate([A, b], axis=1))[2]
     n = A.shape[-1]
-    M, _ = _eliminate(A, b.reshape(n, -1))
-    x = jnp.zeros((n, M.shape[1] - n), M.dtype)
-    for k in reversed(range(n)):
-        x = x.at[k].set((M[k, n:] - M[k, :n] @ x) / M[k, k])
-    return x.reshape(b.shape)
+    return _back_substitute(reduced[:, :n], reduced[:, n:])
+
+
+solve_small.defjvp(_solve_jvp(solve_small, _factored_solve))
+_factored_solve.defjvp(_solve_jvp(_factored_solve, _factored_solve))
 
 
 def inverse_small(A: ArrayLike) -> Array:
@@ -192,9 +251,8 @@ def inverse_small(A: ArrayLike) -> Array:
 def determinant_small(A: ArrayLike) -> Array:
     """$\\det A$ of one small square matrix by the elimination of `solve_small` (no LAPACK
     call)."""
-    A = jnp.asarray(A)
-    M, parity = _eliminate(A, jnp.zeros((A.shape[-1], 0), A.dtype))
-    return parity * jnp.prod(jnp.diagonal(M))
+    _, _, U, parity = _eliminate(jnp.asarray(A))
+    return parity * jnp.prod(jnp.diagonal(U))
 
 
 def symmetric_eigenvalue_min(A: ArrayLike) -> Array:

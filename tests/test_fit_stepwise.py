@@ -28,7 +28,7 @@ def physical(z):
 def jacobian_at(q, calls=None):
     if calls is not None:
         calls.append(np.asarray(q))
-    return residuals(q), jax.jacfwd(residuals)(q)
+    return residuals(q), jax.jacfwd(residuals)(q), None
 
 
 def reference(solver, z0, max_steps):
@@ -73,6 +73,51 @@ def test_same_iterates_and_minimum_as_optimistix(name, z0):
     assert len(calls) == int(steps) + 1
 
 
+def test_moving_sigmas_are_held_across_steps_and_solved_again_to_orears_fixed_point():
+    """Errors in variables (effective variance, Orear 1982): each residual over a sigma
+    that moves with the parameters through the model's slope, the Jacobian holding it
+    fixed.  The loop ends at the fixed point of least squares with the weights of its own
+    solution -- found here independently by scipy's least squares iterated with fixed
+    weights -- where the fixed-weight gradient vanishes."""
+    from scipy.optimize import least_squares
+
+    sigma_y, sigma_x = 1e-2, 0.05
+
+    def model(q):
+        return 3.0 * (1 + q[0] * T) * jnp.exp(q[1] * T)
+
+    def sigma_of(q):
+        slope = 3.0 * jnp.exp(q[1] * T) * (q[0] + q[1] * (1 + q[0] * T))  # d model / d T
+        return jnp.sqrt(sigma_y**2 + (slope * sigma_x) ** 2)
+
+    def moving_jacobian_at(q):
+        sigma = sigma_of(q)
+        held = lambda q: (model(q) - DATA) / jax.lax.stop_gradient(sigma_of(q))  # noqa: E731
+        return (model(q) - DATA) / sigma, jax.jacfwd(held)(q), sigma
+
+    solver = SOLVERS["helixrod LM"]
+    z, cost, result, steps = stepwise_least_squares(moving_jacobian_at, physical, jnp.asarray([1.0, 0.5]), solver, 200)
+    assert result_name(result) == "successful"
+    q = np.asarray(physical(z))
+    r, J, sigma = (np.asarray(a) for a in moving_jacobian_at(jnp.asarray(q)))
+    assert np.max(np.abs(J.T @ r)) < 1e-8 * np.linalg.norm(J, axis=0).max() * np.linalg.norm(r)
+    assert float(cost) == pytest.approx(0.5 * r @ r, rel=1e-8)
+
+    q_ref = np.array([0.4, -1.3])
+    for _ in range(50):
+        weights = np.asarray(sigma_of(jnp.asarray(q_ref)))
+        fixed = lambda q, w=weights: (np.asarray(model(jnp.asarray(q))) - DATA) / w  # noqa: E731
+        q_next = least_squares(fixed, q_ref, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15).x
+        done = np.max(np.abs(q_next - q_ref)) < 1e-14
+        q_ref = q_next
+        if done:
+            break
+    np.testing.assert_allclose(q, q_ref, rtol=1e-7)
+    # Not the minimum of the cost with moving weights: the held weights are what differ.
+    moving = least_squares(lambda q: np.asarray((model(jnp.asarray(q)) - DATA) / sigma_of(jnp.asarray(q))), q_ref, method="lm").x
+    assert np.max(np.abs(moving - q_ref) / np.abs(q_ref)) > 1e-6
+
+
 def test_max_steps_reached_is_reported_as_optimistix_does():
     solver = SOLVERS["helixrod LM"]
     z, cost, result, steps = stepwise_least_squares(jacobian_at, physical, jnp.asarray([2.0, 1.5]), solver, 2)
@@ -92,7 +137,7 @@ def test_a_nonfinite_start_is_flagged_without_evaluating_the_model():
 
 
 def test_a_model_that_fails_at_the_start_ends_not_successful():
-    nan_jacobian = lambda q: (jnp.full(T.size, jnp.nan), jnp.full((T.size, 2), jnp.nan))
+    nan_jacobian = lambda q: (jnp.full(T.size, jnp.nan), jnp.full((T.size, 2), jnp.nan), None)
     z, cost, result, steps = stepwise_least_squares(nan_jacobian, physical, jnp.asarray([0.0, 0.0]), SOLVERS["helixrod LM"], 10)
     sol = optx.least_squares(lambda z, _: jnp.full(T.size, jnp.nan) * z[0], SOLVERS["helixrod LM"], jnp.zeros(2), max_steps=10, throw=False)
     assert result_name(result) == result_name(promote(sol.result)) != "successful"
@@ -168,7 +213,7 @@ def test_one_compiled_step_whatever_device_placement_the_model_returns():
 
     def committed_jacobian_at(q):
         model = lambda q: 3.0 * (1 + q[0] * t) * jnp.exp(q[1] * t) - DATA[:37]  # noqa: E731
-        return jax.device_put((model(q), jax.jacfwd(model)(q)), jax.devices()[0])
+        return jax.device_put((model(q), jax.jacfwd(model)(q)), jax.devices()[0]) + (None,)
 
     records = _fit_compiling(committed_jacobian_at, 20)
     assert _compilations(records, "_step") == 1, [m for m in records if "_step" in m]
@@ -184,7 +229,7 @@ def test_one_compiled_model_whatever_placement_the_steps_return():
     @jax.jit
     def plain_model(q):
         model = lambda q: 3.0 * (1 + q[0] * t) * jnp.exp(q[1] * t) - DATA[:33]  # noqa: E731
-        return model(q), jax.jacfwd(model)(q)
+        return model(q), jax.jacfwd(model)(q), None
 
     records = _fit_compiling(plain_model, 100)
     assert _compilations(records, "plain_model") == 1, [m for m in records if "plain_model" in m]

@@ -79,6 +79,14 @@ class AbstractForwardModel(eqx.Module):
         it out of its residuals, degrees of freedom and error analysis."""
         return None
 
+    def moving_sigmas(self, predicted: dict[str, Array]) -> Array | None:
+        """The sigmas `(m,)` that divide the residuals, from `residuals`' predictions, where
+        they move with the parameters and the Jacobian holds them fixed (errors in
+        variables: an effective variance from the model's slopes); `None` (default) where
+        no sigma moves.  A stepwise fit (`_stepwise.py`) then holds them fixed across its
+        steps and solves again with the sigmas of its solution until they stop moving."""
+        return None
+
     @property
     @abc.abstractmethod
     def frame_observed(self) -> bool:

@@ -373,8 +373,8 @@ def _stepwise_multistart(z0s, model, param, solver, max_steps: int, report):
     arrays, static = split_arrays((model, param))
 
     def jacobian_at(q):
-        J, (r, _) = _split_jacobian_and_predictions(static, q, arrays)
-        return r, J
+        J, (r, predicted) = _split_jacobian_and_predictions(static, q, arrays)
+        return r, J, model.moving_sigmas(predicted)
 
     solved = []
     for z0 in z0s:

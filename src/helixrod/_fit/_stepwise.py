@@ -61,15 +61,27 @@ def _start(static, arrays, z0, r, J):
     return eqx.filter(_fresh_state(solver, z0, (r, J, z0)), eqx.is_array)
 
 
+def _reweighted(r, J, sigma, held):
+    """Residuals and Jacobian over the sigmas `held` instead of their own `sigma` (`None`:
+    unchanged); a row whose ratio is not a positive number keeps its own."""
+    if sigma is None:
+        return r, J
+    ratio = sigma / held
+    ratio = jnp.where(jnp.isfinite(ratio) & (ratio > 0), ratio, 1.0)
+    return r * ratio, J * ratio[:, None]
+
+
 @functools.partial(jit, static_argnums=0)
-def _step(static, arrays, z, dynamic, r, J_physical):
+def _step(static, arrays, z, dynamic, r, J_physical, sigma, held):
     """One solver step from `z` and the state's arrays `dynamic`, with the residuals `r` and
-    their Jacobian `J_physical` in the physical values at `dynamic.y_eval`: (next z, next
-    state's arrays, terminate, result, the physical values of the next point to evaluate)
-    as `optimistix`'s loop body (termination judged at `z` with the new state).  `static`
-    and `arrays` are the two halves of `(solver, physical)`."""
+    their Jacobian `J_physical` in the physical values at `dynamic.y_eval`, reweighted from
+    their moving sigmas `sigma` to the sigmas `held` (`_reweighted`): (next z, next state's
+    arrays, terminate, result, the physical values of the next point to evaluate) as
+    `optimistix`'s loop body (termination judged at `z` with the new state).  `static` and
+    `arrays` are the two halves of `(solver, physical)`."""
     solver, physical = static.combine(arrays)
     z_eval = dynamic.y_eval
+    r, J_physical = _reweighted(r, J_physical, sigma, held)
     args = (r, J_physical @ jax.jacfwd(physical)(z_eval), z_eval)
     # The static half (a traced linear map's jaxpr) made in this trace: the same for every call.
     static_state = eqx.filter(_fresh_state(solver, z, args), eqx.is_array, inverse=True)
@@ -80,21 +92,33 @@ def _step(static, arrays, z, dynamic, r, J_physical):
     return z_next, eqx.filter(state, eqx.is_array), terminate, promote(result), physical(state.y_eval)
 
 
+#: Largest relative change of the moving sigmas between two solves at which a stepwise fit
+#: stops solving again (`stepwise_least_squares`).
+SIGMA_TOLERANCE = 1e-6
+
+
 def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver, max_steps: int):
     """Minimise $\\tfrac12|r|^2$ over internal coordinates `z` from `z0` with the
     Gauss--Newton-type `solver` (`steppable`), at most `max_steps` steps.
-    `jacobian_at(q)` returns the residuals and their Jacobian `(r, dr/dq)` at the physical
-    values `q = physical(z)` (a compiled program's concrete output; `physical` a
-    differentiable map, a pytree such as an `equinox.Module`'s method, compiled into the
-    step).  Returns what `optimistix.least_squares` would -- the solution `z`, the cost
-    $\\tfrac12|r|^2$ there (`inf` where not finite), a `RESULTS` code and the number of
-    steps -- with the model evaluated once per step, by `jacobian_at` (and once more, at
-    the point the solver would have tried next, when it stops before `max_steps`)."""
+    `jacobian_at(q)` returns the residuals, their Jacobian and their moving sigmas `(r,
+    dr/dq, sigma)` at the physical values `q = physical(z)` (a compiled program's concrete
+    output; `physical` a differentiable map, a pytree such as an `equinox.Module`'s method,
+    compiled into the step).  Returns what `optimistix.least_squares` would -- the solution
+    `z`, the cost $\\tfrac12|r|^2$ there (`inf` where not finite), a `RESULTS` code and the
+    number of steps -- with the model evaluated once per step, by `jacobian_at` (and once
+    more, at the point the solver would have tried next, when it stops before `max_steps`).
+
+    Moving sigmas (`AbstractForwardModel.moving_sigmas`, `None` where there are none; the
+    Jacobian holds them fixed) are held at those of the start across the steps, so that the
+    solver's cost and Jacobian agree; once it stops, the model is evaluated at its solution
+    and, if the sigmas there differ from those held by more than `SIGMA_TOLERANCE`
+    (relative), the solver starts again from the solution with them (Orear's iteration of
+    effective variances; steps count towards `max_steps`)."""
     z = jnp.asarray(z0)
     if not np.all(np.isfinite(np.asarray(z))):
         return z, jnp.asarray(jnp.inf, z.dtype), RESULTS.nonfinite, jnp.asarray(0, jnp.int32)
     arrays, static = split_arrays((solver, physical))
-    r, J = jacobian_at(_physical_at(physical, z))
+    r, J, sigma = jacobian_at(_physical_at(physical, z))
     # Every input of `_step` placed as the model's results are, at every step.  JAX compiles
     # a program again for inputs placed differently (committed to a device or not): an
     # exported program's call (the trace cache) returns committed results where the start is
@@ -105,24 +129,42 @@ def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver
     device = next(iter(r.devices())) if isinstance(r, jax.Array) and r.committed else None
     place = (lambda tree: tree) if device is None else functools.partial(jax.device_put, device=device)
     z, r, J = place((z, r, J))
+    held, residuals = sigma, None
     dynamic = _start(static, arrays, z, r, J)
     terminate, result, steps = False, RESULTS.successful, 0
     while steps < max_steps:
-        z, dynamic, r, J = place((z, dynamic, r, J))
-        z, dynamic, terminate, result, q_eval = _step(static, arrays, z, dynamic, r, J)
+        z, dynamic, r, J, sigma, held = place((z, dynamic, r, J, sigma, held))
+        z, dynamic, terminate, result, q_eval = _step(static, arrays, z, dynamic, r, J, sigma, held)
         steps += 1
         if steps < max_steps:
             # Asked for before `terminate` is read: JAX dispatches asynchronously, so the
             # model runs while Python waits on the step.  Wasted after the last step.
-            r, J = jacobian_at(q_eval)
+            r, J, sigma = jacobian_at(q_eval)
         terminate = bool(terminate)
+        if terminate and held is not None and succeeded(result) and steps < max_steps:
+            r, J, sigma = jacobian_at(_physical_at(physical, z))
+            if _moved(sigma, held):
+                held = sigma
+                z, r, J = place((z, r, J))
+                dynamic = _start(static, arrays, z, r, J)
+                continue
+            residuals = r  # with the sigmas of the solution, as the fit's report sees them
         if terminate or not succeeded(result):
             break
     if succeeded(result) and not terminate:
         result = RESULTS.nonlinear_max_steps_reached
-    residuals = dynamic.f_info.residual  # at the last accepted point, z
+    if residuals is None:
+        residuals = dynamic.f_info.residual  # at the last accepted point, z
     cost = 0.5 * jnp.sum(residuals * residuals)
     return z, jnp.where(jnp.isfinite(cost), cost, jnp.inf), result, jnp.asarray(steps, jnp.int32)
+
+
+def _moved(sigma, held) -> bool:
+    """Whether the moving sigmas `sigma` differ from `held` by more than `SIGMA_TOLERANCE`
+    (relative) where both are finite."""
+    sigma, held = np.asarray(sigma), np.asarray(held)
+    both = np.isfinite(sigma) & np.isfinite(held) & (held > 0)
+    return bool(np.any(np.abs(sigma[both] - held[both]) > SIGMA_TOLERANCE * held[both]))
 
 
 @filter_jit

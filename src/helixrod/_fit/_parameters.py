@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
@@ -201,7 +202,11 @@ class Parameterisation(eqx.Module):
 
     def starts(self, z_base, n: int, key) -> np.ndarray:
         """`n` starts: `z_base`, then random perturbations suited to each coordinate
-        (log-normal stiffnesses, normal couplings and twists)."""
+        (log-normal stiffnesses, normal couplings and twists) drawn from `key` (`None`:
+        `jax.random.key(0)`).  One start draws nothing."""
+        if n == 1:
+            return np.asarray(z_base, dtype=float)[None, :]
+        key = jax.random.key(0) if key is None else key
         spread = np.array([{"K1": 0.7, "K2": 0.7, "K3": 0.5}.get(name, 0.5) for name in self.free] + [0.2] * len(self.extra_free))
         noise = np.array(random_normal(key, (n, len(self.names))))
         noise[0] = 0.0

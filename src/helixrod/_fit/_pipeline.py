@@ -583,7 +583,6 @@ def fit_stiffness(
         fixed, float(np.sqrt(p[0] * p[1])), model.twist_scale(p), extra, extra0, isotropic
     )
     param = parameterisation(p0)
-    key = jax.random.key(0) if key is None else key
     n_starts = int(n_starts)
     with progress_bar("fit_stiffness: starts", n_starts + 1, progress, owner="fit_stiffness") as report:
         scanned = init is None and model.scan_start

@@ -116,7 +116,7 @@ def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver
     effective variances; steps count towards `max_steps`)."""
     z = jnp.asarray(z0)
     if not np.all(np.isfinite(np.asarray(z))):
-        return z, jnp.asarray(jnp.inf, z.dtype), RESULTS.nonfinite, jnp.asarray(0, jnp.int32)
+        return z, np.float64(np.inf), RESULTS.nonfinite, np.int32(0)
     arrays, static = split_arrays((solver, physical))
     r, J, sigma = jacobian_at(_physical_at(physical, z))
     # Every input of `_step` placed as the model's results are, at every step.  JAX compiles
@@ -155,8 +155,11 @@ def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver
         result = RESULTS.nonlinear_max_steps_reached
     if residuals is None:
         residuals = dynamic.f_info.residual  # at the last accepted point, z
-    cost = 0.5 * jnp.sum(residuals * residuals)
-    return z, jnp.where(jnp.isfinite(cost), cost, jnp.inf), result, jnp.asarray(steps, jnp.int32)
+    # In NumPy: a handful of one-operation programs, each a compilation or a cache lookup
+    # on a process's first fit, for a sum.
+    residuals = np.asarray(residuals)
+    cost = 0.5 * float(np.sum(residuals * residuals))
+    return z, np.float64(cost if np.isfinite(cost) else np.inf), result, np.int32(steps)
 
 
 def _moved(sigma, held) -> bool:

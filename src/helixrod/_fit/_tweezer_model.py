@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from .._compile import jit
 from .._dna import helix_from_bdna, kT as thermal_energy
 from .._misc import random_integers, random_normal, random_split
 from .._status import RESULTS
@@ -210,6 +211,14 @@ def _control_kind(torque_controlled, control) -> str:
     return "turns" if not torque_controlled.any() else "mixed"
 
 
+@jit(run_once=True)
+def _constants(temperature):
+    """$k_BT$ at `temperature` (which `TweezerData` has checked) and the B-DNA filament
+    length per base pair: one program, not a dozen one-operation programs (each a
+    compilation or a cache lookup on a process's first fit)."""
+    return thermal_energy(temperature), helix_from_bdna()[2]
+
+
 @forward_model.register
 def _(data: TweezerData, *, fit_offsets=None, errors_in_variables=None, branch=None, use_register=None) -> TweezerModel:
     if branch is not None or use_register is not None:
@@ -226,6 +235,7 @@ def _(data: TweezerData, *, fit_offsets=None, errors_in_variables=None, branch=N
     measured = np.zeros(0) if data.measured_torque is None else np.asarray(data.measured_torque)[torque_points]
     measured_sigma = np.zeros(0) if data.measured_torque_sigma is None else np.asarray(data.measured_torque_sigma)[torque_points]
     dtype = jnp.result_type(float)
+    kT, length_per_bp = _constants(data.temperature)
     return TweezerModel(
         force=data.force,
         control=jnp.asarray(control, dtype),
@@ -239,8 +249,8 @@ def _(data: TweezerData, *, fit_offsets=None, errors_in_variables=None, branch=N
         measured_torque_sigma=jnp.asarray(measured_sigma, dtype),
         molecule=data.molecule,
         n_bp=jnp.asarray(data.n_bp, dtype),
-        kT=thermal_energy(data.temperature),
-        length_per_bp=jnp.asarray(helix_from_bdna()[2], dtype),
+        kT=kT,
+        length_per_bp=jnp.asarray(length_per_bp, dtype),
         molecule_names=tuple(data.molecule_names),
         control_kind=_control_kind(torque_controlled, control),
         fit_offsets=bool(fit_offsets),

@@ -384,7 +384,9 @@ def _stepwise_multistart(z0s, model, param, solver, max_steps: int, report):
         q, p = _physical_values(z, param)
         solved.append((z, cost, result, steps, p, q))
         report.advance(1)
-    return jax.tree.map(lambda *a: jnp.stack(a), *solved)
+    # On the host: `_best_start` reads them there (a stack of device arrays is a small
+    # program of its own, a compilation or a cache lookup on a process's first fit).
+    return jax.tree.map(lambda *a: np.stack([np.asarray(x) for x in a]), *solved)
 
 
 @filter_jit

@@ -20,7 +20,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from .._misc import float_dtype, random_normal
-from .._rod import PARAMETER_NAMES, Rod, check_rod_vector, rod_from_vector, rod_vector
+from .._rod import PARAMETER_NAMES, Rod, check_rod_vector, rod_from_vector
 
 STIFFNESS_NAMES = PARAMETER_NAMES[:5]
 TWIST_NAMES = PARAMETER_NAMES[5:]
@@ -282,7 +282,7 @@ def start_vector(init, fixed: dict[str, float], default, model_names=()) -> np.n
     values imposed; `ValueError` unless it is a valid rod."""
     p = dict(zip(PARAMETER_NAMES, default))
     if isinstance(init, Rod):
-        p.update(zip(PARAMETER_NAMES, np.asarray(rod_vector(init), float)))
+        p.update(zip(PARAMETER_NAMES, [float(getattr(init, n)) for n in PARAMETER_NAMES[:5]] + [float(u) for u in np.asarray(init.uhat)]))
     elif isinstance(init, Mapping):
         for n, v in init.items():
             if n in model_names:

@@ -596,7 +596,7 @@ def fit_stiffness(
         z0s = param.starts(param.internal(p0), n_starts, key)
         stepwise = model.forward_mode_only and steppable(solver)
         if stepwise:
-            solved = _stepwise_multistart(jnp.asarray(z0s), model, param, solver, int(max_steps), report)
+            solved = _stepwise_multistart(z0s, model, param, solver, int(max_steps), report)
         elif adaptive:
             solved = _adaptive_multistart(z0s, model, param, solver, int(max_steps), batching, report)
             report.advance(n_starts - report.done)  # the starts left out by the early stop
@@ -729,7 +729,7 @@ def _best_start(solved, model, param, solver, method, max_steps, absolute_sigma,
     # Starts that reached the best minimum up to the symmetries.
     best, agree, p_best = _agreement(p_all, cost, model, param, results)
     q = np.concatenate([[p_best[PARAMETER_NAMES.index(n)] for n in param.free], q_all[best, len(param.free):]])
-    J, (r, predicted) = jacobian_and_predictions(jnp.asarray(q), model, param, once=once)
+    J, (r, predicted) = jacobian_and_predictions(q, model, param, once=once)
     observed = model.observed_residuals()
     if observed is not None:
         J, r = J[observed], r[observed]

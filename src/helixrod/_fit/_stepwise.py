@@ -114,7 +114,7 @@ def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver
     and, if the sigmas there differ from those held by more than `SIGMA_TOLERANCE`
     (relative), the solver starts again from the solution with them (Orear's iteration of
     effective variances; steps count towards `max_steps`)."""
-    z = jnp.asarray(z0)
+    z = z0 if isinstance(z0, jax.Array) else jax.device_put(np.asarray(z0))  # a transfer, not a program
     if not np.all(np.isfinite(np.asarray(z))):
         return z, np.float64(np.inf), RESULTS.nonfinite, np.int32(0)
     arrays, static = split_arrays((solver, physical))
@@ -142,7 +142,9 @@ def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver
             r, J, sigma = jacobian_at(q_eval)
         terminate = bool(terminate)
         if terminate and held is not None and succeeded(result) and steps < max_steps:
-            r, J, sigma = jacobian_at(_physical_at(physical, z))
+            # At the host's copy of z: placed as the start was, so `_physical_at` runs the
+            # program it compiled there (a committed z would compile it again).
+            r, J, sigma = jacobian_at(_physical_at(physical, np.asarray(z)))
             if _moved(sigma, held):
                 held = sigma
                 z, r, J = place((z, r, J))

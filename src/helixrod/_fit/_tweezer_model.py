@@ -234,19 +234,20 @@ def _(data: TweezerData, *, fit_offsets=None, errors_in_variables=None, branch=N
     turned = ~torque_controlled & (np.abs(control) > 0)
     measured = np.zeros(0) if data.measured_torque is None else np.asarray(data.measured_torque)[torque_points]
     measured_sigma = np.zeros(0) if data.measured_torque_sigma is None else np.asarray(data.measured_torque_sigma)[torque_points]
+    # Host arrays placed with `device_put`: `jnp.asarray` with a dtype was a small program each.
     dtype = jnp.result_type(float)
     kT, length_per_bp = _constants(data.temperature)
     return TweezerModel(
         force=data.force,
-        control=jnp.asarray(control, dtype),
-        torque_controlled=jnp.asarray(torque_controlled),
+        control=jax.device_put(np.asarray(control, dtype)),
+        torque_controlled=jax.device_put(torque_controlled),
         extension=data.extension,
         extension_sigma=data.extension_sigma,
         force_sigma=data.force_sigma if errors_in_variables else None,
         turns_sigma=data.turns_sigma if errors_in_variables else None,
-        torque_points=jnp.asarray(torque_points, jnp.int32),
-        measured_torque=jnp.asarray(measured, dtype),
-        measured_torque_sigma=jnp.asarray(measured_sigma, dtype),
+        torque_points=jax.device_put(torque_points.astype(np.int32)),
+        measured_torque=jax.device_put(np.asarray(measured, dtype)),
+        measured_torque_sigma=jax.device_put(np.asarray(measured_sigma, dtype)),
         molecule=data.molecule,
         n_bp=jnp.asarray(data.n_bp, dtype),
         kT=kT,

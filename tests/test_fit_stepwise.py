@@ -90,7 +90,10 @@ def test_moving_sigmas_are_held_across_steps_and_solved_again_to_orears_fixed_po
         slope = 3.0 * jnp.exp(q[1] * T) * (q[0] + q[1] * (1 + q[0] * T))  # d model / d T
         return jnp.sqrt(sigma_y**2 + (slope * sigma_x) ** 2)
 
+    calls = []
+
     def moving_jacobian_at(q):
+        calls.append(np.asarray(q))
         sigma = sigma_of(q)
         held = lambda q: (model(q) - DATA) / jax.lax.stop_gradient(sigma_of(q))  # noqa: E731
         return (model(q) - DATA) / sigma, jax.jacfwd(held)(q), sigma
@@ -98,6 +101,9 @@ def test_moving_sigmas_are_held_across_steps_and_solved_again_to_orears_fixed_po
     solver = SOLVERS["helixrod LM"]
     z, cost, result, steps = stepwise_least_squares(moving_jacobian_at, physical, jnp.asarray([1.0, 0.5]), solver, 200)
     assert result_name(result) == "successful"
+    # One model evaluation per step and the one asked for before the last verdict, as
+    # without moving sigmas: each solution's sigmas come from the evaluation accepted there.
+    assert len(calls) == int(steps) + 1
     q = np.asarray(physical(z))
     r, J, sigma = (np.asarray(a) for a in moving_jacobian_at(jnp.asarray(q)))
     assert np.max(np.abs(J.T @ r)) < 1e-8 * np.linalg.norm(J, axis=0).max() * np.linalg.norm(r)

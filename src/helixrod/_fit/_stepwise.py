@@ -110,10 +110,10 @@ def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver
 
     Moving sigmas (`AbstractForwardModel.moving_sigmas`, `None` where there are none; the
     Jacobian holds them fixed) are held at those of the start across the steps, so that the
-    solver's cost and Jacobian agree; once it stops, the model is evaluated at its solution
-    and, if the sigmas there differ from those held by more than `SIGMA_TOLERANCE`
-    (relative), the solver starts again from the solution with them (Orear's iteration of
-    effective variances; steps count towards `max_steps`)."""
+    solver's cost and Jacobian agree; once it stops, the sigmas at its solution (from the
+    evaluation it accepted there) are compared with those held and, if they differ by more
+    than `SIGMA_TOLERANCE` (relative), the solver starts again from the solution with them
+    (Orear's iteration of effective variances; steps count towards `max_steps`)."""
     z = z0 if isinstance(z0, jax.Array) else jax.device_put(np.asarray(z0))  # a transfer, not a program
     if not np.all(np.isfinite(np.asarray(z))):
         return z, np.float64(np.inf), RESULTS.nonfinite, np.int32(0)
@@ -130,10 +130,12 @@ def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver
     place = (lambda tree: tree) if device is None else functools.partial(jax.device_put, device=device)
     z, r, J = place((z, r, J))
     held, residuals = sigma, None
+    at_z = (z, r, J, sigma)  # the model's evaluation at the solver's current point
     dynamic = _start(static, arrays, z, r, J)
     terminate, result, steps = False, RESULTS.successful, 0
     while steps < max_steps:
         z, dynamic, r, J, sigma, held = place((z, dynamic, r, J, sigma, held))
+        fed = (dynamic.y_eval, r, J, sigma)
         z, dynamic, terminate, result, q_eval = _step(static, arrays, z, dynamic, r, J, sigma, held)
         steps += 1
         if steps < max_steps:
@@ -141,10 +143,14 @@ def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver
             # model runs while Python waits on the step.  Wasted after the last step.
             r, J, sigma = jacobian_at(q_eval)
         terminate = bool(terminate)
+        if held is not None and np.array_equal(np.asarray(z), np.asarray(fed[0])):
+            at_z = fed  # the step accepted the point evaluated for it
         if terminate and held is not None and succeeded(result) and steps < max_steps:
-            # At the host's copy of z: placed as the start was, so `_physical_at` runs the
-            # program it compiled there (a committed z would compile it again).
-            r, J, sigma = jacobian_at(_physical_at(physical, np.asarray(z)))
+            if not np.array_equal(np.asarray(at_z[0]), np.asarray(z)):
+                # At the host's copy of z: placed as the start was, so `_physical_at` runs
+                # the program it compiled there (a committed z would compile it again).
+                at_z = (z, *jacobian_at(_physical_at(physical, np.asarray(z))))
+            _, r, J, sigma = at_z
             if _moved(sigma, held):
                 held = sigma
                 z, r, J = place((z, r, J))

@@ -179,3 +179,23 @@ FIT_POINTS = 24
 def fit_grid(rng):
     """FIT_POINTS random helices (kappa, tau) of the fit tests."""
     return rng.uniform(0.2, 2.5, FIT_POINTS), rng.uniform(-2.0, 2.0, FIT_POINTS)
+
+
+#: The helices with errors in variables of the fit tests: generating stiffnesses (K1, K2,
+#: K3, K13, K23), intrinsic twist, and the sigmas of kappa, tau, F and M.
+EIV_TRUTH, EIV_UHAT, EIV_SIGMAS = (1.0, 1.5, 0.8, 0.5, 0.5), (1.0, 0.0, 0.0), (0.02, 0.02, 0.01, 0.01)
+
+
+def eiv_helix_data(n=30, seed=0):
+    """`n` helices of the rod `EIV_TRUTH`, every value of (kappa, tau, F, M) drawn with its
+    sigma of `EIV_SIGMAS`, carried by the data (errors in variables on by default)."""
+    rng = np.random.default_rng(seed)
+    kappa, tau = rng.uniform(0.3, 2.0, n), rng.uniform(-1.5, 1.5, n)
+    eq = hr.helix_equilibria(hr.Rod(*EIV_TRUTH, EIV_UHAT), kappa, tau)
+    ks, ts, sf, sm = EIV_SIGMAS
+    noise = rng.normal(size=(4, n))
+    return hr.HelixData(
+        np.asarray(eq.force[:, 0]) + sf * noise[0], np.asarray(eq.moment[:, 0]) + sm * noise[1],
+        kappa + ks * noise[2], tau + ts * noise[3], force_sigma=sf, moment_sigma=sm,
+        kappa_sigma=np.full(n, ks), tau_sigma=np.full(n, ts),
+    )

@@ -7,11 +7,12 @@ stiffnesses free, uhat fixed: one compilation); the minimiser fit is small (3 po
 start, a few steps)."""
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import optax
 import optimistix as optx
 import pytest
-from helpers import SPRING, fit_grid, random_rods
+from helpers import EIV_SIGMAS, EIV_TRUTH, EIV_UHAT, SPRING, eiv_helix_data, fit_grid, random_rods
 
 import helixrod as hr
 
@@ -168,3 +169,60 @@ def test_reduced_chi2_warning():
     assert "far from 1 for 95 degrees of freedom" in chi2_warning(fit(5e4)) and "larger than" in chi2_warning(fit(5e4))
     assert "smaller than the sigmas say" in chi2_warning(fit(0.1))
     assert chi2_warning(fit(9.0, m=5, rank=5)) is None  # no degrees of freedom
+
+
+def test_errors_in_variables_fit_is_orears_fixed_point():
+    """Errors in variables whiten each (F, M) pair by an effective covariance from the
+    model's slopes along kappa and tau, which move with K while the Jacobian holds them
+    fixed (Orear 1982).  The fit ends at the fixed point of least squares with the weights
+    of its own solution: found here independently by scipy's least squares with fixed
+    weights (slopes by central differences, the 2x2 whitening in NumPy), iterated from
+    the generating rod.  The fit's residuals are those with its solution's own weights."""
+    from scipy.optimize import least_squares
+
+    data, uhat, n = eiv_helix_data(), EIV_UHAT, 30
+    ks, ts, sf, sm = EIV_SIGMAS
+    fit = hr.fit_stiffness(data, uhat=uhat)
+    assert fit.ok, fit.message
+    slot = np.asarray(fit.predicted["slot"])
+    k, t = np.asarray(data.kappa), np.asarray(data.tau)
+    wrench = jax.jit(lambda K, kk, tt: (lambda e: jnp.stack([e.force, e.moment]))(hr.helix_equilibria(hr.Rod(*K, uhat), kk, tt)))
+    rows = np.arange(n)
+
+    def predicted(K, kk=k, tt=t):
+        return np.asarray(wrench(jnp.asarray(K), kk, tt))[:, rows, slot]
+
+    def whitening(K):
+        h = 1e-6
+        dk = (predicted(K, k + h, t) - predicted(K, k - h, t)) / (2 * h)
+        dt = (predicted(K, k, t + h) - predicted(K, k, t - h)) / (2 * h)
+        J = np.stack([dk.T, dt.T], -1)  # (n, 2 wrench, 2 variables)
+        cov = J @ np.diag([ks**2, ts**2]) @ J.transpose(0, 2, 1) + np.diag([sf**2, sm**2])
+        return np.linalg.inv(np.linalg.cholesky(cov))
+
+    def whitened(K, W):
+        err = (predicted(K) - np.stack([np.asarray(data.force), np.asarray(data.moment)])).T
+        r = np.einsum("nij,nj->ni", W, err)
+        return np.concatenate([r[:, 0], r[:, 1]])
+
+    K = np.array(EIV_TRUTH)
+    for _ in range(30):
+        W = whitening(K)
+        K_next = least_squares(lambda K: whitened(K, W), K, method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14).x
+        done = np.max(np.abs(K_next - K)) < 1e-12
+        K = K_next
+        if done:
+            break
+    fitted = np.array([float(fit.params[name]) for name in ("K1", "K2", "K3", "K13", "K23")])
+    stderr = np.array([float(fit.stderr[name]) for name in ("K1", "K2", "K3", "K13", "K23")])
+    assert np.max(np.abs(fitted - K) / stderr) < 5e-4  # 0.005 with the weights moving in the solve
+    np.testing.assert_allclose(np.asarray(fit.residuals), whitened(fitted, whitening(fitted)), rtol=1e-6, atol=1e-7)
+    # The moving model's Jacobian holds the weights of the point itself: no step left.
+    from helixrod._fit import forward_model
+    from helixrod._fit._pipeline import jacobian_and_predictions
+
+    moving = forward_model(data)
+    assert fit.problem.model.held_covariance is not None and moving.held_covariance is None
+    J, (r, _) = jacobian_and_predictions(np.asarray(fitted), moving, fit.problem.parameterisation)
+    step = np.linalg.lstsq(np.asarray(J), -np.asarray(r), rcond=None)[0]
+    assert np.max(np.abs(step) / stderr) < 5e-4

@@ -75,6 +75,17 @@ def test_succeeded_reads_concrete_codes_on_the_host():
     assert succeeded(batch).tolist() == ok_of(batch).tolist() == [True, False, True]
 
 
+def test_message_of_a_code_read_from_a_numpy_batch():
+    """A code indexed out of a batch held in NumPy (as a fit's starts are) has its message,
+    not equinox's "unknown" for a NumPy scalar."""
+    from helixrod._status import message
+
+    batch = jax.tree.map(np.asarray, codes(jnp.array([True, False]), hr.RESULTS.successful, hr.RESULTS.nonlinear_max_steps_reached))
+    second = jax.tree.map(lambda v: v[1], batch)
+    assert message(second) == message(hr.RESULTS.nonlinear_max_steps_reached) != "unknown"
+    assert "maximum number of steps" in message(second)
+
+
 def test_raise_if_failed_traced_raises_when_the_program_runs():
     @jax.jit
     def run(ok, x):

@@ -50,7 +50,9 @@ def promote(result) -> RESULTS:
 
 def message(result) -> str:
     """The message of a concrete scalar code ("" for success)."""
-    return RESULTS[result]
+    # As an array: a code indexed from a NumPy array holds a NumPy scalar, which equinox
+    # does not look up ("unknown").
+    return RESULTS[jax.tree.map(np.asarray, result)]
 
 
 def result_name(result) -> str:

@@ -67,7 +67,9 @@ def bootstrap(
 
     `kind="cases"` resamples data points with replacement (no trust in sigma needed);
     `"parametric"` redraws the observations around the fitted predictions with the data's
-    sigmas.  Same model, options and solver as `fit` (helix data).  Returns a `Bootstrap`;
+    sigmas.  Same model, options and solver as `fit` (helix data); with errors in
+    variables each replicate holds the weights of `fit`'s solution (its effective
+    covariances, resampled with their points), one least-squares problem per replicate.  Returns a `Bootstrap`;
     `throw=True` raises `SolverError` if a replicate fails (default: it is NaN and flagged).
 
     `progress`: `None` (default) shows a rich progress bar of the replicates when stdout is
@@ -85,6 +87,8 @@ def bootstrap(
     check_progress(progress, "bootstrap")
     problem = fit.problem
     model = problem.model.with_data(data)
+    if model.holds_weights:  # errors in variables: the weights of the fit's solution, held
+        model = model.with_weights_held(fit.predicted)
     param = problem.parameterisation
     models = model.replicates(kind, int(n), key, fit.predicted)
     p_fit = np.asarray(rod_vector(fit.rod))

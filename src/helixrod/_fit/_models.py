@@ -88,6 +88,19 @@ class AbstractForwardModel(eqx.Module):
         return None
 
     @property
+    def holds_weights(self) -> bool:
+        """Whether the residuals' weights move with the parameters and `with_weights_held`
+        holds them (errors in variables of a model solved in one compiled program)."""
+        return False
+
+    def with_weights_held(self, predicted: dict[str, Array]) -> "AbstractForwardModel":
+        """The model with its moving weights held at those of `predicted` (the predictions
+        of `residuals` at a point): its Jacobian and its cost then agree, and a fit solves
+        again with the weights of its solution until they stop moving (Orear's iteration,
+        `fit_stiffness`).  Only where `holds_weights`."""
+        raise NotImplementedError(f"{type(self).__name__} holds no weights")
+
+    @property
     @abc.abstractmethod
     def frame_observed(self) -> bool:
         """Whether the data fix the director frame (then no frame symmetry applies)."""
@@ -149,6 +162,9 @@ class HelixModel(AbstractForwardModel):
     branch: str = eqx.field(static=True)
     use_register: bool = eqx.field(static=True)
     errors_in_variables: bool = eqx.field(static=True)
+    # Errors in variables: the effective covariance (var F, cov FM, var M) `(n, 3)` of each
+    # point's chosen register, held fixed (`with_weights_held`); `None`: moving with K.
+    held_covariance: Array | None = None
     forward_mode_only: ClassVar[bool] = False
     default_starts: ClassVar[int] = 32
 
@@ -156,11 +172,23 @@ class HelixModel(AbstractForwardModel):
     def frame_observed(self) -> bool:
         return self.use_register
 
+    @property
+    def holds_weights(self) -> bool:
+        return self.errors_in_variables
+
+    def with_weights_held(self, predicted):
+        if not self.errors_in_variables:
+            raise NotImplementedError("a HelixModel holds weights with errors in variables only")
+        return eqx.tree_at(
+            lambda m: m.held_covariance, self, predicted["residual_covariance"], is_leaf=lambda x: x is None
+        )
+
     def residuals(self, rod, extra):
         # Only the fields used: over a large data set the other fields' values (and their
         # linearisation in the solver) would be computed and kept for nothing.
         fields = ("force", "moment", "phi", "stable")
-        if self.errors_in_variables:
+        moving = self.errors_in_variables and self.held_covariance is None
+        if moving:
             eq, slopes = self._equilibria_with_slopes(rod, fields)
         else:
             eq = helix_equilibria(rod, self.kappa, self.tau, fields=fields)
@@ -168,7 +196,11 @@ class HelixModel(AbstractForwardModel):
         errF = eq.force - self.force[:, None]
         errM = eq.moment - self.moment[:, None]
         if self.errors_in_variables:
-            rF, rM = self._whitened(slopes, errF, errM, sF, sM)
+            if moving:
+                covariance = self._effective_covariance(slopes, sF, sM)
+            else:
+                covariance = tuple(jnp.broadcast_to(c[:, None], errF.shape) for c in self.held_covariance.T)
+            rF, rM = _whitened(covariance, errF, errM, sM)
         else:
             rF, rM = errF / sF, errM / sM
         rF = jnp.where(self.force_observed[:, None], rF, 0.0)
@@ -195,6 +227,8 @@ class HelixModel(AbstractForwardModel):
             slot = jnp.argmin(distance, axis=-1)
         take = lambda x: jnp.take_along_axis(x, slot[:, None], axis=1)[:, 0]  # noqa: E731
         predicted = {"force": take(eq.force), "moment": take(eq.moment), "register": take(eq.phi), "slot": slot}
+        if self.errors_in_variables:
+            predicted["residual_covariance"] = jnp.stack([take(c) for c in covariance], axis=-1)
         return jnp.concatenate([take(r) for r in residuals]), predicted
 
     def _equilibria_with_slopes(self, rod, fields):
@@ -207,13 +241,13 @@ class HelixModel(AbstractForwardModel):
         along_k, along_t = linear(ones, zeros), linear(zeros, ones)
         return eq, jax.lax.stop_gradient((along_k.force, along_k.moment, along_t.force, along_t.moment))
 
-    def _whitened(self, slopes, errF, errM, sF, sM):
-        # Effective variance: first-order propagation of the errors of kappa and tau (with
-        # their correlation) into the 2x2 covariance of the model's (F, M) at each register,
-        # added to that of the observed (F, M); the residual pair is whitened by its
-        # Cholesky factor (Orear, Am. J. Phys. 50 (1982) 912, in two dimensions).  As in the
-        # effective-variance method the weights are held fixed in the Jacobian (no
-        # gradient through the propagated covariance: `slopes` carry none).
+    def _effective_covariance(self, slopes, sF, sM):
+        """The effective covariance (var F, cov FM, var M) at each register: first-order
+        propagation of the errors of kappa and tau (with their correlation) into the 2x2
+        covariance of the model's (F, M), added to that of the observed (F, M) (Orear, Am.
+        J. Phys. 50 (1982) 912, in two dimensions).  The slopes carry no gradient: as in the
+        effective-variance method, the weights are held fixed in the Jacobian, and the fit
+        iterates them to their fixed point (`with_weights_held`)."""
         dF_dk, dM_dk, dF_dt, dM_dt = slopes
         ks, ts = self.kappa_sigma[:, None], self.tau_sigma[:, None]
         ckt = self.kappa_tau_correlation[:, None] * ks * ts
@@ -225,11 +259,7 @@ class HelixModel(AbstractForwardModel):
         cMM = sM**2 + propagated(dM_dk, dM_dt, dM_dk, dM_dt)
         both = (self.force_observed & self.moment_observed)[:, None]  # else the one observed alone
         cFM = jnp.where(both, propagated(dF_dk, dF_dt, dM_dk, dM_dt), 0.0)
-        l11 = jnp.sqrt(cFF)
-        l21 = cFM / l11
-        l22 = jnp.sqrt(jnp.maximum(cMM - l21 * l21, sM**2 * 1e-12))
-        rF = errF / l11
-        return rF, (errM - l21 * rF) / l22
+        return cFF, cFM, cMM
 
     def isotropic_start(self, uhat):
         """Weighted linear least squares for an isotropic rod (K1 = K2 = B, K3 = C, no
@@ -283,9 +313,31 @@ class HelixModel(AbstractForwardModel):
             return jax.tree.map(lambda a: a[idx], self)
         batch = jax.tree.map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), self)
         kf, km = random_split(key, 2)
-        force = predicted["force"][None] + self.force_sigma[None] * random_normal(kf, (n, size))
-        moment = predicted["moment"][None] + self.moment_sigma[None] * random_normal(km, (n, size))
+        zF, zM = random_normal(kf, (n, size)), random_normal(km, (n, size))
+        if self.errors_in_variables:
+            # With the errors of kappa and tau propagated: the effective covariance's
+            # Cholesky factor, as the residuals are whitened by it.
+            cFF, cFM, cMM = (predicted["residual_covariance"][None, :, i] for i in range(3))
+            l11 = jnp.sqrt(cFF)
+            l21 = cFM / l11
+            l22 = jnp.sqrt(jnp.maximum(cMM - l21 * l21, 0.0))
+            dF, dM = l11 * zF, l21 * zF + l22 * zM
+        else:
+            dF, dM = self.force_sigma[None] * zF, self.moment_sigma[None] * zM
+        force = predicted["force"][None] + dF
+        moment = predicted["moment"][None] + dM
         return eqx.tree_at(lambda m: (m.force, m.moment), batch, (force, moment))
+
+
+def _whitened(covariance, errF, errM, sM):
+    """The residual pair (errF, errM) whitened by the Cholesky factor of its 2x2
+    `covariance` (var F, cov FM, var M); `sM` floors the conditional variance of M."""
+    cFF, cFM, cMM = covariance
+    l11 = jnp.sqrt(cFF)
+    l21 = cFM / l11
+    l22 = jnp.sqrt(jnp.maximum(cMM - l21 * l21, sM**2 * 1e-12))
+    rF = errF / l11
+    return rF, (errM - l21 * rF) / l22
 
 
 def _positive_on_line(x, v):

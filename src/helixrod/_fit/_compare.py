@@ -72,7 +72,8 @@ class ModelComparison(eqx.Module):
     def simulate_test(self, smaller: str, larger: str, n: int = 200, key: Array | None = None) -> SimulatedTest:
         """The likelihood-ratio test of `smaller` in `larger` against its simulated null
         distribution (a parametric bootstrap, Efron & Tibshirani 1993, ch. 16): `n` data sets
-        drawn around the predictions of the `smaller` fit with the data's sigmas, each
+        drawn around the predictions of the `smaller` fit with the data's sigmas (with
+        errors in variables, that fit's effective covariances, held in the refits), each
         refitted by both models in vmapped calls (the smaller from its fit, the larger from
         both fits, keeping the lower cost; local refits: where the larger model has distant
         minima they miss, the simulated statistics fall short and the p-value is too small).  Valid where the $\\chi^2$ reference is not

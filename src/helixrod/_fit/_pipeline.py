@@ -711,9 +711,9 @@ def _replace_row(a, i, row):
 
 
 #: Orear's iteration of a fit with held weights (`_held_weights_iteration`) stops once a
-#: solve with the weights of the last solution moved it by at most this many standard
-#: errors (read from the cost it gained: $\tfrac12 \delta^2$ in units of the reduced
-#: $\chi^2$ where that exceeds 1), or after `HELD_WEIGHTS_ROUNDS` solves.
+#: solve with the weights of the last point moved it by at most this many standard errors
+#: (read from the cost it gained: $\tfrac12 \delta^2$ in units of the reduced $\chi^2$
+#: where that exceeds 1), or after `HELD_WEIGHTS_ROUNDS` solves.
 HELD_WEIGHTS_TOLERANCE = 1e-3
 HELD_WEIGHTS_ROUNDS = 20
 
@@ -721,13 +721,15 @@ HELD_WEIGHTS_ROUNDS = 20
 def _held_weights_iteration(solved, agreement, moving, held, param, solver, max_steps: int, batching: str):
     """Orear's iteration from the best of the starts `solved`, solved by the model `held`
     (`AbstractForwardModel.with_weights_held`; returned as it is if the best start
-    failed): the weights of the model `moving` at the solution are held and the best
-    start solved on with them, until the solve no longer moves it
-    (`HELD_WEIGHTS_TOLERANCE`).  Its fixed point minimises the cost with the
-    weights of the point itself, where the gradient of the cost with its weights held is
-    zero (Orear, Am. J. Phys. 50 (1982) 912); a solve with moving weights stops short of
-    it, its Jacobian not being that of its cost.  Returns the starts with the best one's
-    row replaced (its steps summed over the solves), the model with the weights of that
+    failed): the weights of the model `moving` at the solution are held and the best start
+    solved on with them, until the solve no longer moves it (`HELD_WEIGHTS_TOLERANCE`).
+    Its fixed point minimises the cost with the weights of the point itself, where the
+    gradient of the cost with its weights held is zero (Orear, Am. J. Phys. 50 (1982) 912);
+    a solve with moving weights stops short of it, its Jacobian not being that of its cost.
+    Where the weights move strongly with the parameters (a model far from the data, whose
+    chosen registers change with the weights) the iteration may not settle: then the
+    result is `RESULTS.weights_not_settled`.  Returns the starts with the best one's row
+    replaced (its steps summed over the solves), the model with the weights of the final
     point held (its residuals are those of the moving model there) and the agreement
     (`_agreement`) with the new canonical point."""
     best, agree, _ = agreement
@@ -735,23 +737,21 @@ def _held_weights_iteration(solved, agreement, moving, held, param, solver, max_
     if not (succeeded(result) and np.isfinite(cost)):
         return solved, held, agreement  # nothing to iterate from
     observed = moving.observed_residuals()
-    for solves in range(HELD_WEIGHTS_ROUNDS + 1):
+    for _ in range(HELD_WEIGHTS_ROUNDS):
         r, predicted = _evaluated(q, moving, param)
         held = moving.with_weights_held(predicted)
-        if not (succeeded(result) and np.isfinite(cost)):
-            break
         r = np.asarray(r) if observed is None else np.asarray(r)[observed]
         own_cost = 0.5 * float(r @ r)  # with the weights of the point itself
-        if solves > 0 and 2 * (previous_cost - float(cost)) <= HELD_WEIGHTS_TOLERANCE**2 * max(1.0, reduced_chi2):
-            break
-        if solves == HELD_WEIGHTS_ROUNDS:
-            result = RESULTS.nonlinear_max_steps_reached
-            break
-        reduced_chi2 = 2 * own_cost / max(r.size - z.size, 1)
-        previous_cost = own_cost
         out = _multistart(jnp.asarray(z)[None], held, param, solver, max_steps, batching)
         z, cost, result, more, p, q = jax.tree.map(lambda a: np.asarray(a)[0], out)
         steps = steps + more
+        gain = own_cost - float(cost)  # about half the square of the move, in standard errors
+        reduced_chi2 = 2 * own_cost / max(r.size - z.size, 1)
+        if not (succeeded(result) and np.isfinite(cost)) or 2 * gain <= HELD_WEIGHTS_TOLERANCE**2 * max(1.0, reduced_chi2):
+            break
+    else:
+        result = RESULTS.weights_not_settled
+    held = moving.with_weights_held(_evaluated(q, moving, param)[1])
     solved = jax.tree.map(lambda a, row: _replace_row(a, best, row), solved, (z, cost, result, steps, p, q))
     p_best = canonical(p, param, moving.frame_observed) if symmetries(param, moving.frame_observed) else p
     return solved, held, (best, agree, np.asarray(p_best, float))
@@ -818,7 +818,7 @@ def _best_start(solved, agreement, model, param, solver, method, max_steps, abso
         J, r, dict(zip(param.names, q)), param.scales(param.names), absolute_sigma=absolute_sigma,
         weak_threshold=weak_threshold, symmetries=[text for text, _ in symmetries(param, frame_observed)],
     )
-    result = jax.tree.map(lambda v: v[best], results)
+    result = jax.tree.map(lambda v: np.asarray(np.asarray(v)[best]), results)  # a 0-d array: `RESULTS[result]` reads it
     if not np.isfinite(analysis.cost):
         result = RESULTS.cost_not_finite
     return assemble(

@@ -71,3 +71,41 @@ def test_throw_false_reports_a_failure_in_ok():
         hr.bulk_helix(SPRING, length, extension=1.5 * length, rotation=theta0)
     good = hr.bulk_helix(SPRING, length, force=0.01, moment=0.0, throw=False)
     assert bool(good.ok) and good.result == hr.RESULTS.successful
+
+
+def test_frozen_root_derivatives_are_the_implicit_functions_to_second_order():
+    """`bulk_helix_at(..., newton_derivatives=True)` (a Newton iteration without
+    derivatives, then the implicit function theorem to any order): its first derivatives
+    in the loads and a stiffness equal those of optimistix's implicit Newton solve, in
+    forward and reverse mode, and its second derivatives (forward over forward, reverse
+    over forward) central differences of its first."""
+    import jax
+    import jax.numpy as jnp
+
+    from helixrod._bvp._bulk import bulk_helix_at
+
+    index = np.array([AXIAL_OBSERVABLES.index("force"), AXIAL_OBSERVABLES.index("moment")])
+    length = 2 * TURN
+
+    def observed(x, frozen):
+        rod = hr.Rod(SPRING.K1, x[2], SPRING.K3, 0.0, 0.0, SPRING.uhat)
+        values = jnp.stack([x[0], x[1], 0.0, 0.0])
+        if frozen:
+            trial = bulk_helix_at(rod, length, index, values, max_steps=32, light=True)
+            bulk = bulk_helix_at(rod, length, index, values, (trial.u, trial.mu1, trial.mu2), max_steps=0, newton_derivatives=True)
+        else:
+            bulk = bulk_helix_at(rod, length, index, values)
+        return jnp.stack([bulk.extension, bulk.rotation])
+
+    x = jnp.array([0.3 * float(SPRING.K1) / TURN**2, 0.1 * float(SPRING.K1) / TURN, 1.1 * float(SPRING.K2)])
+    first = jax.jit(jax.jacfwd(lambda x: observed(x, True)))
+    reference = jax.jit(jax.jacfwd(lambda x: observed(x, False)))(x)
+    np.testing.assert_allclose(first(x), reference, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(jax.jit(jax.jacrev(lambda x: observed(x, True)))(x), reference, rtol=1e-9, atol=1e-12)
+    second = jax.jit(jax.jacfwd(jax.jacfwd(lambda x: observed(x, True))))(x)
+    np.testing.assert_allclose(jax.jit(jax.jacrev(jax.jacfwd(lambda x: observed(x, True))))(x), second, rtol=1e-9, atol=1e-12)
+    for i in range(3):
+        h = 1e-4 * float(jnp.abs(x[i]))
+        step = jnp.zeros(3).at[i].set(h)
+        central = (first(x + step) - first(x - step)) / (2 * h)
+        np.testing.assert_allclose(second[..., i], central, rtol=1e-5, atol=1e-9 * float(jnp.max(jnp.abs(second))))

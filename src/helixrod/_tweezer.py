@@ -232,10 +232,10 @@ def _bulk(rod, ell, force, torque, guess=None):
     A plain Newton iteration (no derivatives) from `guess` (`(u, mu1, mu2)`, default the
     unloaded helix) goes first, stopped once its steps are at round-off; where it does not
     converge the point is flagged and the differentiated part runs at zero load, whose root
-    (the unloaded helix) is known.  Derivatives are those of two Newton steps from the frozen
-    root (`newton_derivatives`): exact to second order -- the twist stiffness is itself a
-    derivative, differentiated again by a fit -- and dense solves that never raise when a
-    least-squares solver probes with a non-finite tangent."""
+    (the unloaded helix) is known.  Derivatives are those of the implicit function theorem
+    at the frozen root (`newton_derivatives`), to any order -- the twist stiffness is itself
+    a derivative, differentiated again by a fit -- with dense solves that never raise when
+    a least-squares solver probes with a non-finite tangent."""
     values = jnp.stack([force, torque, 0.0 * force, 0.0 * force])
     trial = bulk_helix_at(
         rod, ell, _FORCE_MOMENT, values, guess, max_steps=_TRIAL_NEWTON_STEPS, light=True, step_tolerance=_NEWTON_STEP_TOLERANCE

@@ -124,6 +124,35 @@ def test_moving_sigmas_are_held_across_steps_and_solved_again_to_orears_fixed_po
     assert np.max(np.abs(moving - q_ref) / np.abs(q_ref)) > 1e-6
 
 
+def test_moving_sigmas_that_do_not_settle_are_flagged():
+    """Two observations +1 and -1 of one value q with sigmas exp(2q) and exp(-2q): with the
+    weights of a point q the least-squares value is -tanh(4q), whose slope at the fixed
+    point q = 0 is -4, so Orear's iteration leaves it and alternates between q ~ +-1.  The
+    loop stops after `HELD_WEIGHTS_ROUNDS` solves and says so."""
+    from helixrod._fit._stepwise import HELD_WEIGHTS_ROUNDS
+
+    y = np.array([1.0, -1.0])
+    calls = []
+
+    def sigma_of(q):
+        return jnp.exp(jnp.array([2.0, -2.0]) * q[0])
+
+    def moving_jacobian_at(q):
+        calls.append(float(q[0]))
+        held = lambda q, s=sigma_of(q): (q[0] - y) / s  # noqa: E731
+        return held(q), jax.jacfwd(held)(q), sigma_of(q)
+
+    z, cost, result, steps = stepwise_least_squares(
+        moving_jacobian_at, lambda z: z, jnp.asarray([0.3]), SOLVERS["helixrod LM"], 10_000
+    )
+    assert result_name(result) == "weights_not_settled"
+    assert int(steps) < 10_000
+    # It alternated: the last solutions are near +-tanh(4 q) = -+q, q ~ 0.9993.
+    assert abs(abs(float(z[0])) - 0.99933) < 1e-3
+    solutions = [q for q in calls if abs(abs(q) - 0.99933) < 1e-3]
+    assert len(solutions) >= HELD_WEIGHTS_ROUNDS - 2 and {np.sign(q) for q in solutions} == {1.0, -1.0}
+
+
 def test_max_steps_reached_is_reported_as_optimistix_does():
     solver = SOLVERS["helixrod LM"]
     z, cost, result, steps = stepwise_least_squares(jacobian_at, physical, jnp.asarray([2.0, 1.5]), solver, 2)

@@ -31,7 +31,7 @@ from ._models import AbstractForwardModel, forward_model
 from ._parameters import Parameterisation, extra_start, resolve_fixed, start_vector
 from ._report import ErrorAnalysis, Identifiability, error_analysis
 from ._solvers import SOLVERS, final_residuals, make_solver, with_materialised_jacobian
-from ._stepwise import steppable, stepwise_least_squares
+from ._stepwise import HELD_WEIGHTS_ROUNDS, steppable, stepwise_least_squares
 from ._symmetry import canonical, closest_in_orbit, symmetries
 
 BATCHING = ("map", "vmap")
@@ -715,7 +715,6 @@ def _replace_row(a, i, row):
 #: (read from the cost it gained: $\tfrac12 \delta^2$ in units of the reduced $\chi^2$
 #: where that exceeds 1), or after `HELD_WEIGHTS_ROUNDS` solves.
 HELD_WEIGHTS_TOLERANCE = 1e-3
-HELD_WEIGHTS_ROUNDS = 20
 
 
 def _held_weights_iteration(solved, agreement, moving, held, param, solver, max_steps: int, batching: str):

@@ -96,6 +96,11 @@ def _step(static, arrays, z, dynamic, r, J_physical, sigma, held):
 #: stops solving again (`stepwise_least_squares`).
 SIGMA_TOLERANCE = 1e-6
 
+#: The most solves of Orear's iteration (errors in variables: weights held, then solved
+#: again with those of the solution), here and in `fit_stiffness`'s compiled path; where
+#: the weights have not settled by then, the result is `RESULTS.weights_not_settled`.
+HELD_WEIGHTS_ROUNDS = 20
+
 
 def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver, max_steps: int):
     """Minimise $\\tfrac12|r|^2$ over internal coordinates `z` from `z0` with the
@@ -113,7 +118,8 @@ def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver
     solver's cost and Jacobian agree; once it stops, the sigmas at its solution (from the
     evaluation it accepted there) are compared with those held and, if they differ by more
     than `SIGMA_TOLERANCE` (relative), the solver starts again from the solution with them
-    (Orear's iteration of effective variances; steps count towards `max_steps`)."""
+    (Orear's iteration of effective variances; steps count towards `max_steps`), at most
+    `HELD_WEIGHTS_ROUNDS` solves in all (then `RESULTS.weights_not_settled`)."""
     z = z0 if isinstance(z0, jax.Array) else jax.device_put(np.asarray(z0))  # a transfer, not a program
     if not np.all(np.isfinite(np.asarray(z))):
         return z, np.float64(np.inf), RESULTS.nonfinite, np.int32(0)
@@ -132,7 +138,7 @@ def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver
     held, residuals = sigma, None
     at_z = (z, r, J, sigma)  # the model's evaluation at the solver's current point
     dynamic = _start(static, arrays, z, r, J)
-    terminate, result, steps = False, RESULTS.successful, 0
+    terminate, result, steps, solves = False, RESULTS.successful, 0, 1
     while steps < max_steps:
         z, dynamic, r, J, sigma, held = place((z, dynamic, r, J, sigma, held))
         fed = (dynamic.y_eval, r, J, sigma)
@@ -152,7 +158,10 @@ def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver
                 at_z = (z, *jacobian_at(_physical_at(physical, np.asarray(z))))
             _, r, J, sigma = at_z
             if _moved(sigma, held):
-                held = sigma
+                if solves == HELD_WEIGHTS_ROUNDS:
+                    result = RESULTS.weights_not_settled
+                    break
+                held, solves = sigma, solves + 1
                 z, r, J = place((z, r, J))
                 dynamic = _start(static, arrays, z, r, J)
                 continue

@@ -122,8 +122,9 @@ def bulk_helix_at(
     differentiate twice or under solvers that probe with non-finite tangents.  (Before,
     the two steps were differentiated, which gives the same first and second derivatives
     -- the Newton map is stationary at a root -- through the residual's third
-    derivatives: the bundled tweezer fit's model program traced in 4.1 s instead of 2.9 s
-    and compiled in 6.0 s instead of 5.4 s, its later calls 0.49 s instead of 0.33 s.)
+    derivatives: on one core the bundled tweezer fit's model program traced in 4.1 s
+    instead of 2.9 s and compiled in 6.0 s instead of 5.4 s, its later calls 0.49 s
+    instead of 0.33 s.)
     Default: optimistix Newton with implicit derivatives."""
     dtype = float_dtype()
     length = jnp.asarray(length, dtype)

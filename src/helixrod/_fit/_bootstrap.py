@@ -69,8 +69,9 @@ def bootstrap(
     `"parametric"` redraws the observations around the fitted predictions with the data's
     sigmas.  Same model, options and solver as `fit` (helix data); with errors in
     variables each replicate holds the weights of `fit`'s solution (its effective
-    covariances, resampled with their points), one least-squares problem per replicate.  Returns a `Bootstrap`;
-    `throw=True` raises `SolverError` if a replicate fails (default: it is NaN and flagged).
+    covariances, resampled with their points), one least-squares problem per replicate.
+    Returns a `Bootstrap`; `throw=True` raises `SolverError` if a replicate fails
+    (default: it is NaN and flagged).
 
     `progress`: `None` (default) shows a rich progress bar of the replicates when stdout is
     a terminal, `True`/`False` force it on or off, and a callable is called as

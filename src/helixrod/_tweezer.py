@@ -495,6 +495,33 @@ class TweezerModuli(eqx.Module):
     buckling_torque: Float[Array, " k"]
 
 
+@filter_jit
+def _moduli(rod, ell, rise, force, A, P, kT):
+    """S, C, g, C0, C_eff and the buckling torque at each of `force` (`tweezer_moduli`), in
+    one compiled program (evaluated operation by operation, four forces took 20-28 s)."""
+
+    def at(F):
+        def observables(wrench):
+            bulk, _ = _bulk(rod, ell, wrench[0], wrench[1])
+            values = jnp.stack([bulk.extension, bulk.rotation])
+            return values, values
+
+        wrench = jnp.stack([F, jnp.zeros((), F.dtype)])
+        # d(h, Theta)/d(F, M) per base pair, and (h, Theta) from the same solve.
+        compliance, (height, _) = jax.jacfwd(observables, has_aux=True)(wrench)
+        stiffness = height * jnp.linalg.inv(compliance)  # per unit axial length (effective_moduli)
+        S, C, g = stiffness[0, 0], stiffness[1, 1], 0.5 * (stiffness[0, 1] + stiffness[1, 0])
+        _, _, _, _, _, _, (C0, C_eff, buckling), _ = response_point(
+            rod, ell, rise, F, 0.0, True, A, P, kT
+        )
+        in_range = C0 / (4 * A * kT) * jnp.sqrt(kT / (A * F)) <= MAX_TWIST_CORRECTION
+        C_eff = jnp.where(in_range, C_eff, jnp.nan)
+        buckling = jnp.where(in_range, jnp.where(buckling >= NO_BUCKLING, jnp.inf, buckling), jnp.nan)
+        return S, C, g, C0, C_eff, buckling
+
+    return jax.vmap(at)(force)
+
+
 def tweezer_moduli(
     rod,
     force: ArrayLike,
@@ -523,24 +550,5 @@ def tweezer_moduli(
     A = jnp.asarray(persistence_length, dtype)
     P = jnp.asarray(plectoneme_twist_persistence, dtype)
 
-    def at(F):
-        def observables(wrench):
-            bulk, _ = _bulk(rod, ell, wrench[0], wrench[1])
-            values = jnp.stack([bulk.extension, bulk.rotation])
-            return values, values
-
-        wrench = jnp.stack([F, jnp.zeros((), dtype)])
-        # d(h, Theta)/d(F, M) per base pair, and (h, Theta) from the same solve.
-        compliance, (height, _) = jax.jacfwd(observables, has_aux=True)(wrench)
-        stiffness = height * jnp.linalg.inv(compliance)  # per unit axial length (effective_moduli)
-        S, C, g = stiffness[0, 0], stiffness[1, 1], 0.5 * (stiffness[0, 1] + stiffness[1, 0])
-        _, _, _, _, _, _, (C0, C_eff, buckling), _ = response_point(
-            rod, ell, rise, F, 0.0, True, A, P, kT
-        )
-        in_range = C0 / (4 * A * kT) * jnp.sqrt(kT / (A * F)) <= MAX_TWIST_CORRECTION
-        C_eff = jnp.where(in_range, C_eff, jnp.nan)
-        buckling = jnp.where(in_range, jnp.where(buckling >= NO_BUCKLING, jnp.inf, buckling), jnp.nan)
-        return S, C, g, C0, C_eff, buckling
-
-    S, C, g, C0, C_eff, buckling = jax.vmap(at)(force)
+    S, C, g, C0, C_eff, buckling = _moduli(rod, ell, rise, force, A, P, kT)
     return TweezerModuli(force, S, C, g, C0, C_eff, buckling)

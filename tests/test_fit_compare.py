@@ -32,6 +32,7 @@ def test_the_generating_class_is_recommended(rng):
         assert comparison.names[0] == "isotropic" and comparison.names[-1] == "general"
         row = comparison.table[name]
         assert row["ok"] and row["identifiable"] and abs(row["chi2_reduced"] - 1) < 0.6
+        assert row["result"] == "successful"
         assert comparison.table[name]["delta_bic"] == 0.0
         # A model nested in another never ends above it (it starts from the nested fit).
         for test in comparison.tests:

@@ -34,7 +34,7 @@ from jaxtyping import Array
 from .._compile import filter_jit
 from .._misc import chi2_survival
 from .._rod import rod_vector
-from .._status import RESULTS
+from .._status import RESULTS, result_name
 from ._helix_data import HelixData
 from ._pipeline import StiffnessFit, fit_stiffness, minimise
 
@@ -56,7 +56,7 @@ class ModelComparison(eqx.Module):
     `StiffnessFit`; `table`: name -> {"n_params", "n_residuals", "cost", "chi2_reduced",
     "log_likelihood", "aic", "bic", "delta_aic", "delta_bic", "akaike_weight", "rank",
     "identifiable" (every free parameter determined: full rank, finite standard errors),
-    "ok" (converged)}; `tests`: the likelihood-ratio tests of nested pairs, each
+    "ok" (converged), "result" (the name of the fit's `RESULTS` code)}; `tests`: the likelihood-ratio tests of nested pairs, each
     {"smaller", "larger", "statistic", "df", "p_value"}; `best`: the recommended model --
     the lowest `criterion` among the converged, identifiable fits (among all converged fits
     when none is identifiable); `criterion`: "bic" or "aic"; `reason`: why `best`."""
@@ -125,7 +125,7 @@ class ModelComparison(eqx.Module):
         for n in self.names:
             row = self.table[n]
             flag = "yes" if row["identifiable"] else f"no (rank {row['rank']})"
-            flag += "" if row["ok"] else ", not converged"
+            flag += "" if row["ok"] else f", not converged ({row['result']})"
             lines.append(
                 f"{n:<{width}}  {row['n_params']:>2}  {row['cost']:>11.5g}  {row['chi2_reduced']:>8.4g}  {row['aic']:>11.6g}  "
                 f"{row['delta_aic']:>7.3g}  {row['bic']:>11.6g}  {row['delta_bic']:>7.3g}  {row['akaike_weight']:>6.3f}  {flag}"
@@ -323,5 +323,6 @@ def _table(fits: Mapping[str, StiffnessFit], names) -> dict:
             "rank": int(fit.identifiability.rank),
             "identifiable": bool(int(fit.identifiability.rank) == len(fit.names) and np.all(np.isfinite(stderr))),
             "ok": bool(fit.ok),
+            "result": result_name(fit.result),
         }
     return table

@@ -70,7 +70,7 @@ from ._compile import filter_jit
 from ._bvp import AXIAL_OBSERVABLES, bulk_helix_at
 from ._dna import ROOM_TEMPERATURE, helix_from_bdna
 from ._dna import kT as thermal_energy
-from ._misc import float_dtype, is_concrete, safe_sqrt
+from ._misc import float_dtype, inverse_small, is_concrete, safe_sqrt
 from ._rod import check_one_rod
 from ._status import RESULTS, raise_if_failed
 
@@ -498,7 +498,7 @@ class TweezerModuli(eqx.Module):
 @filter_jit
 def _moduli(rod, ell, rise, force, A, P, kT):
     """S, C, g, C0, C_eff and the buckling torque at each of `force` (`tweezer_moduli`), in
-    one compiled program (evaluated operation by operation, four forces took 20-28 s)."""
+    one compiled program (evaluated operation by operation, four forces took 20-30 s)."""
 
     def at(F):
         def observables(wrench):
@@ -509,7 +509,7 @@ def _moduli(rod, ell, rise, force, A, P, kT):
         wrench = jnp.stack([F, jnp.zeros((), F.dtype)])
         # d(h, Theta)/d(F, M) per base pair, and (h, Theta) from the same solve.
         compliance, (height, _) = jax.jacfwd(observables, has_aux=True)(wrench)
-        stiffness = height * jnp.linalg.inv(compliance)  # per unit axial length (effective_moduli)
+        stiffness = height * inverse_small(compliance)  # per unit axial length (effective_moduli)
         S, C, g = stiffness[0, 0], stiffness[1, 1], 0.5 * (stiffness[0, 1] + stiffness[1, 0])
         _, _, _, _, _, _, (C0, C_eff, buckling), _ = response_point(
             rod, ell, rise, F, 0.0, True, A, P, kT

@@ -317,10 +317,8 @@ class HelixModel(AbstractForwardModel):
         if self.errors_in_variables:
             # With the errors of kappa and tau propagated: the effective covariance's
             # Cholesky factor, as the residuals are whitened by it.
-            cFF, cFM, cMM = (predicted["residual_covariance"][None, :, i] for i in range(3))
-            l11 = jnp.sqrt(cFF)
-            l21 = cFM / l11
-            l22 = jnp.sqrt(jnp.maximum(cMM - l21 * l21, 0.0))
+            covariance = tuple(predicted["residual_covariance"][None, :, i] for i in range(3))
+            l11, l21, l22 = _cholesky_2x2(covariance, 0.0)
             dF, dM = l11 * zF, l21 * zF + l22 * zM
         else:
             dF, dM = self.force_sigma[None] * zF, self.moment_sigma[None] * zM
@@ -329,13 +327,19 @@ class HelixModel(AbstractForwardModel):
         return eqx.tree_at(lambda m: (m.force, m.moment), batch, (force, moment))
 
 
-def _whitened(covariance, errF, errM, sM):
-    """The residual pair (errF, errM) whitened by the Cholesky factor of its 2x2
-    `covariance` (var F, cov FM, var M); `sM` floors the conditional variance of M."""
+def _cholesky_2x2(covariance, floor):
+    """The lower Cholesky factor (l11, l21, l22) of the 2x2 `covariance` (var F, cov FM,
+    var M), each entry an array; the conditional variance of M at least `floor`."""
     cFF, cFM, cMM = covariance
     l11 = jnp.sqrt(cFF)
     l21 = cFM / l11
-    l22 = jnp.sqrt(jnp.maximum(cMM - l21 * l21, sM**2 * 1e-12))
+    return l11, l21, jnp.sqrt(jnp.maximum(cMM - l21 * l21, floor))
+
+
+def _whitened(covariance, errF, errM, sM):
+    """The residual pair (errF, errM) whitened by the Cholesky factor of its 2x2
+    `covariance` (var F, cov FM, var M); `sM` floors the conditional variance of M."""
+    l11, l21, l22 = _cholesky_2x2(covariance, sM**2 * 1e-12)
     rF = errF / l11
     return rF, (errM - l21 * rF) / l22
 

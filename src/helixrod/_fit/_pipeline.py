@@ -605,8 +605,8 @@ def fit_stiffness(
         stepwise = model.forward_mode_only and steppable(solver)
         # Moving weights (errors in variables) held at those of the first start: every start
         # then solves one least-squares problem, whose Jacobian its cost agrees with.
-        moving, held = model, not stepwise and model.holds_weights
-        if held:
+        moving, holds = model, not stepwise and model.holds_weights
+        if holds:
             model = model.with_weights_held(_evaluated(_physical_values(z0s[0], param)[0], model, param)[1])
         if stepwise:
             solved = _stepwise_multistart(z0s, model, param, solver, int(max_steps), report)
@@ -619,7 +619,7 @@ def fit_stiffness(
         else:  # one call: nothing is slower for want of a bar
             solved = _multistart(jnp.asarray(z0s), model, param, solver, int(max_steps), batching)
         agreement = _agreement(solved[4], solved[1], model, param, solved[2])
-        if held:
+        if holds:
             solved, model, agreement = _held_weights_iteration(
                 solved, agreement, moving, model, param, solver, int(max_steps), batching
             )
@@ -752,8 +752,7 @@ def _held_weights_iteration(solved, agreement, moving, held, param, solver, max_
         result = RESULTS.weights_not_settled
     held = moving.with_weights_held(_evaluated(q, moving, param)[1])
     solved = jax.tree.map(lambda a, row: _replace_row(a, best, row), solved, (z, cost, result, steps, p, q))
-    p_best = canonical(p, param, moving.frame_observed) if symmetries(param, moving.frame_observed) else p
-    return solved, held, (best, agree, np.asarray(p_best, float))
+    return solved, held, (best, agree, _canonical_point(p, param, moving.frame_observed))
 
 
 def _evaluated(q, model: AbstractForwardModel, param: Parameterisation):
@@ -770,6 +769,12 @@ def _evaluated_once(static, q, arrays):
     return evaluate(q, model, param)
 
 
+def _canonical_point(p, param: Parameterisation, frame_observed: bool) -> np.ndarray:
+    """The canonical member of the symmetry orbit of the full physical vector `p`
+    (`canonical`), or `p` itself where no symmetry applies."""
+    return canonical(p, param, frame_observed) if symmetries(param, frame_observed) else np.asarray(p, float)
+
+
 def _agreement(p_all, cost, model, param, results):
     """The best of the starts with full physical vectors `p_all`, costs `cost` (non-finite:
     failed) and `results`, its canonical member and how many starts reached the best
@@ -784,7 +789,7 @@ def _agreement(p_all, cost, model, param, results):
     scale = param.scales(PARAMETER_NAMES)
 
     def at_minimum_of(best):
-        p_best = canonical(p_all[best], param, frame_observed) if symmetric else np.asarray(p_all[best], float)
+        p_best = _canonical_point(p_all[best], param, frame_observed)
         if not np.isfinite(cost[best]):
             return p_best, []
         near = np.flatnonzero(np.abs(cost - cost[best]) <= 1e-6 * (1 + cost[best]))

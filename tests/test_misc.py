@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import helixrod as hr
 from helixrod import _misc
 
 
@@ -292,8 +293,6 @@ def test_as_float_keeps_host_values_on_the_host_and_traced_values_traced():
 
 
 def test_host_and_device_inputs_give_the_same_solve():
-    import helixrod as hr
-
     rod = hr.Rod(1.0, 1.5, 0.8)
     host = hr.solve_static(rod, [0.5, 0.1, -1.0], [0.1, 0.8, 0.2], 5.0, outputs=("wrench", "frame", "centreline"))
     device = hr.solve_static(rod, jnp.array([0.5, 0.1, -1.0]), jnp.array([0.1, 0.8, 0.2]), jnp.asarray(5.0),

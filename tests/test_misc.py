@@ -283,6 +283,9 @@ def test_as_float_keeps_host_values_on_the_host_and_traced_values_traced():
     assert isinstance(host, np.ndarray) and host.dtype == np.float64
     assert isinstance(_misc.as_float(jnp.ones(2, jnp.float32), jnp.float64), jax.Array)
     assert _misc.as_float(jnp.ones(2, jnp.float32), jnp.float64).dtype == jnp.float64
+    # Without a dtype a JAX array keeps its own and a host value becomes float64.
+    assert _misc.as_float(jnp.ones(2, jnp.float32)).dtype == jnp.float32
+    assert _misc.as_float(3).dtype == np.float64 and isinstance(_misc.as_float(3), np.ndarray)
 
     def total(x):
         mixed = _misc.as_float([x, 2.0], jnp.float64)

@@ -25,15 +25,16 @@ def is_concrete(*trees) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(trees))
 
 
-def as_float(x, dtype):
+def as_float(x, dtype=None):
     """`x` as an array of `dtype`: a JAX array, or anything holding a tracer, through
-    `jnp.asarray`; anything else (Python numbers, lists, NumPy arrays) as a NumPy array,
-    which a compiled program takes with its call.  `jnp.asarray` of a Python float or a
-    NumPy array runs a conversion of its own on the device (measured 56 and 73 us each,
-    most of an eager call's overhead where a function converts several)."""
+    `jnp.asarray` (`dtype=None`: its own); anything else (Python numbers, lists, NumPy
+    arrays) as a NumPy array (`dtype=None`: float64), which a compiled program takes with
+    its call.  `jnp.asarray` of a Python float or a NumPy array runs a conversion of its
+    own on the device (measured 56 and 73 us each, most of an eager call's overhead where a
+    function converts several)."""
     if isinstance(x, jax.Array) or any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(x)):
         return jnp.asarray(x, dtype)
-    return np.asarray(x, dtype)
+    return np.asarray(x, float if dtype is None else dtype)
 
 
 def float_dtype():

@@ -6,14 +6,13 @@ import dataclasses
 
 import diffrax
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
 from .._kirchhoff import solve_static
 from .._lie import CommutatorFreeRK4, MuntheKaasRK
-from .._misc import check_choice, check_integer, is_concrete
+from .._misc import as_float, check_choice, check_integer, is_concrete
 
 #: The smallest tolerance a solve is asked for, in machine epsilons of its precision.
 TOLERANCE_EPSILONS = 100
@@ -23,16 +22,15 @@ METHODS = ("levenberg-marquardt", "newton")
 
 
 def _tolerance(name: str):
-    """The converter of a tolerance field: a JAX array (traced or not) as it is, anything
-    else as a NumPy float64 array, which costs no device dispatch (building the options of
-    an eager call took ~0.3 ms with `jnp.asarray`); the solve converts it to its own dtype
-    (`BoundaryValueOptions.for_dtype`) and `__check_init__` checks its shape and value."""
+    """The converter of a tolerance field (`as_float`): a JAX array (traced or not) as it
+    is, anything else as a NumPy float64 array, which costs no device dispatch (building the
+    options of an eager call took ~0.3 ms with `jnp.asarray`); the solve converts it to its
+    own dtype (`BoundaryValueOptions.for_dtype`) and `__check_init__` checks its shape and
+    value."""
 
     def convert(value) -> Array | np.ndarray:
-        if isinstance(value, jax.Array):
-            return value
         try:
-            return np.asarray(value, dtype=float)
+            return as_float(value)
         except (TypeError, ValueError):
             raise ValueError(f"BoundaryValueOptions: {name} must be a number, got {value!r}") from None
 

@@ -56,10 +56,11 @@ class ModelComparison(eqx.Module):
     `StiffnessFit`; `table`: name -> {"n_params", "n_residuals", "cost", "chi2_reduced",
     "log_likelihood", "aic", "bic", "delta_aic", "delta_bic", "akaike_weight", "rank",
     "identifiable" (every free parameter determined: full rank, finite standard errors),
-    "ok" (converged), "result" (the name of the fit's `RESULTS` code)}; `tests`: the likelihood-ratio tests of nested pairs, each
-    {"smaller", "larger", "statistic", "df", "p_value"}; `best`: the recommended model --
-    the lowest `criterion` among the converged, identifiable fits (among all converged fits
-    when none is identifiable); `criterion`: "bic" or "aic"; `reason`: why `best`."""
+    "ok" (converged), "result" (the name of the fit's `RESULTS` code)}; `tests`: the
+    likelihood-ratio tests of nested pairs, each {"smaller", "larger", "statistic", "df",
+    "p_value"}; `best`: the recommended model -- the lowest `criterion` among the
+    converged, identifiable fits (among all converged fits when none is identifiable);
+    `criterion`: "bic" or "aic"; `reason`: why `best`."""
 
     names: tuple[str, ...] = eqx.field(static=True)
     fits: dict

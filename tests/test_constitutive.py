@@ -10,7 +10,7 @@ from helpers import KIRCHHOFF_ROD as ROD, N1
 import helixrod as hr
 
 
-@pytest.mark.slow  # Newton inside every stage: ~1 min to compile on 2 busy cores
+@pytest.mark.heavy  # Newton inside every stage: ~10 s, most of it compiling
 def test_strain_energy_rod():
     K = ROD.K
     quadratic = hr.StrainEnergyRod(lambda v: 0.5 * v @ K @ v, uhat=ROD.uhat)

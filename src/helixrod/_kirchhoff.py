@@ -26,7 +26,7 @@ from ._compile import filter_jit, outside_transformations
 from ._equilibria import HelixEquilibria
 from ._geometry import helix_centreline, helix_frame
 from ._lie import BodyVelocityTerm, CommutatorFreeRK4, MuntheKaasRK, RodState, check_rotation, tangent
-from ._misc import as_float, differentiated_part, float_dtype, increasing_within, is_concrete
+from ._misc import as_float, differentiated_part, float_dtype, increasing_within, is_concrete, no_gradient
 from ._rod import check_one_rod
 from ._saved_points import diffeqsolve_saving
 from ._status import RESULTS, promote, raise_if_failed
@@ -165,26 +165,6 @@ def linearised_rate(rod, n0, m0) -> Array:
     a solution turn or grow, per unit length (no gradient)."""
     J = _wrench_jacobian(rod, jax.lax.stop_gradient(jnp.concatenate([n0, m0])))
     return _spectral_radius_bound(J)
-
-
-def fixed_step_flow(rod, n0, m0, length, steps) -> RodState:
-    """The state at $s$ = `length` from the identity pose at the origin with local start
-    wrench (`n0`, `m0`), by `steps` equal `CommutatorFreeRK4` steps (may be traced) in a
-    plain loop: the flow `solve_static(..., steps=)` computes, as a far smaller program,
-    for callers that differentiate it in many directions (the stability test)."""
-    term = BodyVelocityTerm(_body_velocity)
-    solver = CommutatorFreeRK4()
-    dtype = jnp.result_type(n0, m0, float)
-    y0 = RodState(n0, m0, jnp.eye(3, dtype=dtype), jnp.zeros(3, dtype))
-    h = length / steps
-
-    def step(i, carry):
-        y, k1 = carry
-        y1, _, _, k5, _ = solver.step(term, i * h, (i + 1) * h, y, rod, k1, False)
-        return y1, k5
-
-    y, _ = jax.lax.fori_loop(0, steps, step, (y0, solver.init(term, 0.0, h, y0, rod)))
-    return y
 
 
 def _parse_outputs(outputs) -> tuple[bool, bool, bool]:
@@ -381,7 +361,7 @@ def _undifferentiated_flow(rod, y0, length, ts, rtol, atol, *, solver, max_steps
     """The default path's flow, never differentiated (`_with_sensitivities` is): a plain loop
     with inputs without tangents (a tangent would make JAX trace the loop's JVP, then drop it)."""
     flow = _Flow(solver, None, max_steps, diffrax.ForwardMode(), dense)
-    return flow(*jax.lax.stop_gradient((rod, y0, length, ts, rtol, atol)))
+    return flow(*no_gradient((rod, y0, length, ts, rtol, atol)))
 
 
 @filter_jit(trace_cache=True)

@@ -23,7 +23,7 @@ singular exactly where the rod has a Jacobi field that meets its end conditions.
   $\\tfrac{\\pi^2}{4}(1 - P/P_c)$.)  The zero is exact, its value elsewhere depends mildly on
   the number of pieces.
 
-The Hessian comes from the linearised flow the shooting already integrates.  Variations of a
+The Hessian comes from the Jacobi fields of each piece (`piece_variations`).  Variations of a
 piece's start node $(\\delta x_a, \\delta\\theta_a)$ (spatial rotation $\\delta D = [\\delta\\theta]_\\times D$)
 and of its lab wrench $(\\delta N, \\delta M_a)$ (moment about $x_a$) map linearly to those at its
 end, $T = \\begin{pmatrix} A & B \\\\ C & D\\end{pmatrix}$; since $\\partial E/\\partial g_b = w_b$ and
@@ -51,12 +51,13 @@ second); where it does not hold the result is flagged unresolved (index $-1$, ma
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._kirchhoff import fixed_step_flow, linearised_rate
-from .._lie import hat, vee
+from .._kirchhoff import linearised_rate
+from .._lie import hat
 from .._misc import inverse_small, lowest_eigenpair, no_gradient, solve_small, symmetric_eigenvalue_min
 from ._ends import LOADED, TWEEZER, EndCondition
 from ._options import BoundaryValueOptions
@@ -70,9 +71,9 @@ EXTENSIBILITY = 1e-5
 #: equal steps, because the adaptive steps follow the solution, not its variations -- on a
 #: straight rod the solution is exact in one step and the variations are not (a clamped
 #: twisted rod's critical moment was 2e-4 off on 16 pieces).  Measured on Greenhill's shaft
-#: (16 pieces), the relative error of its critical twist at 40 / 20 / 12 / 10 / 6 steps per
-#: radian: 8e-8 / 6e-8 / 1.8e-7 / 4e-7 / 2.3e-6 (fourth order below 12).  The test's cost is
-#: nearly all in these steps (the flow and its six tangents): 12 made it 3.3x cheaper than 40.
+#: (16 pieces, `piece_variations`), the relative error of its critical twist at 24 / 20 / 12 /
+#: 8 steps per radian: -6e-8 / -5e-8 / 2.8e-7 / 1.3e-6 (the Lie-group steps these replaced,
+#: differentiated in six directions: 1.8e-7 at 12).
 STEPS_PER_RADIAN = 12
 
 #: Dimensionless eigenvalues within NEUTRAL (p/16)^2 of zero (p pieces) are neutral, not
@@ -99,19 +100,16 @@ def stiffness_range(rod) -> tuple[Array, Array]:
     return symmetric_eigenvalue_min(hessian), jnp.trace(hessian) / 3.0
 
 
-def piece_transfer(frame_a, N, M_a, flow, jacobian, compliance) -> Float[Array, "12 12"]:
+def piece_transfer(frame_a, N, M_a, variations: PieceVariations, compliance) -> Float[Array, "12 12"]:
     """The transfer matrix $T$ of one piece (module docstring) in lab components: variations
-    (dx, dtheta, dN, dM) at its start to those at its end.  `flow` `(18,)` and `jacobian`
-    `(6, 18)`: the piece's flow from its start frame and its derivatives along the six local
-    start wrenches (`_flow_and_jacobian`).  `compliance`: the tiny extensibility
-    (`EXTENSIBILITY` of the piece's bending compliance $h^3/\\bar K$) that keeps $B$
-    invertible where a piece is straight: there an inextensible piece's end cannot move
-    along its axis to first order, whatever the axial force."""
-    R = flow[3:12].reshape(3, 3)
-    r = frame_a @ flow[:3]
-    dp = frame_a @ jacobian[:, :3].T  # (3, 6)
-    # Spatial rotation of the end frame per local start wrench: D_a vee(dR R^T).
-    drot = frame_a @ jax.vmap(lambda dR: vee(dR @ R.T))(jacobian[:, 3:12].reshape(6, 3, 3)).T
+    (dx, dtheta, dN, dM) at its start to those at its end, from the piece's `variations`
+    along the six local start wrenches (`piece_variations`).  `compliance`: the tiny
+    extensibility (`EXTENSIBILITY` of the piece's bending compliance $h^3/\\bar K$) that
+    keeps $B$ invertible where a piece is straight: there an inextensible piece's end cannot
+    move along its axis to first order, whatever the axial force."""
+    r = frame_a @ variations.position
+    dp = frame_a @ variations.d_position  # (3, 6)
+    drot = frame_a @ variations.d_rotation
 
     def linear(v):
         dx, dth, dN, dM = v[:3], v[3:6], v[6:9], v[9:]
@@ -164,17 +162,84 @@ def second_variation(rod, length, end: EndCondition, N, end_position, transfers)
     return H, free
 
 
-def _flow_and_jacobian(rod, h, local, steps):
-    """A piece's flow `(18,)` (as `piece_flow`) and its Jacobian `(6, 18)` along the local
-    start wrench, by `fixed_step_flow` (a small program: compiles in a fraction of the
-    adaptive integration's time)."""
+class PieceVariations(eqx.Module):
+    """A piece integrated from the identity pose at the origin (`piece_variations`): its end
+    `position` `(3,)`, `frame` `(3, 3)` and lab `moment` `(3,)` (about the end), and the
+    variations of its end position `d_position` and spatial rotation `d_rotation` `(3, 6)`
+    along the six local start wrenches $(\\delta n, \\delta m)$."""
 
-    def flow(w):
-        y = fixed_step_flow(rod, w[:3], w[3:], h, steps)
-        return jnp.concatenate([y.x, y.frame.reshape(9), y.n, y.m])
+    position: Float[Array, "3"]
+    frame: Float[Array, "3 3"]
+    moment: Float[Array, "3"]
+    d_position: Float[Array, "3 6"]
+    d_rotation: Float[Array, "3 6"]
 
-    flows, jac = jax.vmap(lambda v: jax.jvp(flow, (local,), (v,)))(jnp.eye(6, dtype=local.dtype))
-    return flows[0], jac
+
+def _times(A, v):
+    """$A v$ for one `(3, 3)` `A` and `v` `(3, k)`, as products and sums: a `dot` in a loop
+    keeps XLA's CPU backend from compiling the loop into a single kernel."""
+    return A[:, 0, None] * v[None, 0] + A[:, 1, None] * v[None, 1] + A[:, 2, None] * v[None, 2]
+
+
+def _transpose_times(A, v):
+    """$A^T v$, as `_times`."""
+    return A[0, :, None] * v[None, 0] + A[1, :, None] * v[None, 1] + A[2, :, None] * v[None, 2]
+
+
+def _cross(a, b):
+    """$a \\times b$ along the leading axis (columns of `(3, k)` arrays, broadcast)."""
+    return jnp.stack([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def piece_variations(rod, n0, m0, length, steps) -> PieceVariations:
+    """A piece of length `length` with local start wrench (`n0`, `m0`) and the variations
+    of its end along the six start wrenches, by `steps` equal classical Runge--Kutta steps
+    of the centreline, frame and Jacobi fields together.
+
+    In the frame of its start (identity pose at the origin) the lab force $N = n_0$ is
+    constant and the moment about the current point is $M = m_0 - x\\times N$; a variation
+    $(\\delta N, \\delta M_0)$ of the start wrench moves the centreline by $\\delta x$ and
+    turns the frame by the spatial rotation $\\delta\\theta$ ($\\delta D = [\\delta\\theta]_\\times D$),
+    which obey the linearised equations
+    $\\delta x' = \\delta\\theta\\times d_3$, $\\delta\\theta' = D\\,\\partial u/\\partial m\\,
+    D^T(\\delta M + M\\times\\delta\\theta)$, $\\delta M = \\delta M_0 - \\delta x\\times N - x\\times\\delta N$
+    (from $D' = D\\hat u$, $x' = De_3$ and $u = u(D^TM)$): six fields of six components
+    beside the pose, all in products and sums, so that the loop is one small kernel
+    (~0.7 us a step here, where `jax.jvp` of the Lie-group steps in six directions took
+    ~4 us).  The frame is not kept on $SO(3)$ by the steps: its drift, of the order of
+    the steps' error, is projected out at the end."""
+    dtype = jnp.result_type(n0, m0, float)
+    N, M0 = n0[:, None], m0[:, None]
+    eye = jnp.eye(3, dtype=dtype)
+    zero = jnp.zeros((3, 3), dtype)
+    dN, dM0 = jnp.concatenate([eye, zero], 1), jnp.concatenate([zero, eye], 1)  # (3, 6): the six directions
+
+    def rates(state):
+        x, D, dx, dtheta = state
+        M = M0 - _cross(x, N)
+        d_moment = dM0 - _cross(dx, N) - _cross(x, dN) + _cross(M, dtheta)
+        twist = lambda v: jax.jvp(rod.twist, (_transpose_times(D, M)[:, 0],), (v,))  # noqa: E731
+        u, du = jax.vmap(twist, out_axes=(None, 1))(_transpose_times(D, d_moment).T)
+        zero_u = jnp.zeros_like(u[0])
+        u_hat = jnp.stack([jnp.stack([zero_u, -u[2], u[1]]), jnp.stack([u[2], zero_u, -u[0]]), jnp.stack([-u[1], u[0], zero_u])])
+        d3 = D[:, 2:3]
+        return d3, _times(D, u_hat), _cross(dtheta, d3), _times(D, du)
+
+    h = length / steps
+
+    def step(_, y):
+        shifted = lambda a, k: jax.tree.map(lambda yi, ki: yi + a * ki, y, k)  # noqa: E731
+        k1 = rates(y)
+        k2 = rates(shifted(h / 2, k1))
+        k3 = rates(shifted(h / 2, k2))
+        k4 = rates(shifted(h, k3))
+        return jax.tree.map(lambda yi, a, b, c, d: yi + (h / 6) * (a + 2 * b + 2 * c + d), y, k1, k2, k3, k4)
+
+    start = (jnp.zeros((3, 1), dtype), eye, jnp.zeros((3, 6), dtype), jnp.zeros((3, 6), dtype))
+    x, D, dx, dtheta = jax.lax.fori_loop(0, steps, step, start)
+    D = D @ (1.5 * eye - 0.5 * D.T @ D)  # one Newton--Schulz step towards the nearest rotation
+    x = x[:, 0]
+    return PieceVariations(x, D, m0 - jnp.cross(x, n0), dx, dtheta)
 
 
 def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: BoundaryValueOptions):
@@ -202,16 +267,19 @@ def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: Bounda
         x, frame = node
         moment = M0 - jnp.cross(x - x0, N)
         local = jnp.concatenate([frame.T @ N, frame.T @ moment])
-        flow, jacobian = _flow_and_jacobian(rod, h, local, steps_of(local))
-        T = piece_transfer(frame, N, moment, flow, jacobian, compliance)
-        end_node = (x + frame @ flow[:3], frame @ flow[3:12].reshape(3, 3))
-        return end_node, (T, jnp.linalg.norm(local[3:]), jnp.linalg.norm(flow[15:]), end_node[0])
+        piece = piece_variations(rod, local[:3], local[3:], h, steps_of(local))
+        end_node = (x + frame @ piece.position, frame @ piece.frame)
+        return end_node, (frame, moment, piece, jnp.linalg.norm(local[3:]), end_node[0])
 
-    _, (transfers, start_moments, end_moments, ends) = per_piece(
+    _, (starts, moments, pieces, start_moments, ends) = per_piece(
         lambda i: jax.lax.scan(sub_piece, (xs[i], frames[i]), None, length=q), jnp.arange(k)
     )
-    largest_moment = jnp.maximum(jnp.max(start_moments), jnp.max(end_moments))
-    return assess(rod, length, end, N, transfers.reshape(p, 12, 12), ends[-1, -1], largest_moment)
+    # The transfer matrices of all pieces at once, outside the sequential loop.
+    flat = lambda a: a.reshape((p,) + a.shape[2:])  # noqa: E731
+    starts, moments, pieces = flat(starts), flat(moments), jax.tree.map(flat, pieces)
+    transfers = jax.vmap(lambda frame, moment, piece: piece_transfer(frame, N, moment, piece, compliance))(starts, moments, pieces)
+    largest_moment = jnp.maximum(jnp.max(start_moments), jnp.max(jnp.linalg.norm(pieces.moment, axis=-1)))
+    return assess(rod, length, end, N, transfers, ends[-1, -1], largest_moment)
 
 
 def assess(rod, length, end: EndCondition, N, transfers, end_position, largest_moment):

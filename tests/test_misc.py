@@ -121,17 +121,16 @@ def test_solve_small_derivatives_in_the_matrix_to_second_order_match_lapack(rng)
     ours, lapack = solution(_misc.solve_small), solution(jnp.linalg.solve)
     # Each derivative compiled as one program: run operation by operation, the unrolled
     # elimination's hundreds of operations compiled one by one (~35 s).
-    jit = jax.jit
-    np.testing.assert_allclose(jit(jax.jacfwd(ours))(t0), jit(jax.jacfwd(lapack))(t0), rtol=1e-11, atol=1e-12)
-    np.testing.assert_allclose(jit(jax.jacrev(ours))(t0), jit(jax.jacfwd(lapack))(t0), rtol=1e-11, atol=1e-12)
-    second = jit(jax.jacfwd(jax.jacfwd(lapack)))(t0)
-    np.testing.assert_allclose(jit(jax.jacfwd(jax.jacfwd(ours)))(t0), second, rtol=1e-10, atol=1e-11)
-    np.testing.assert_allclose(jit(jax.jacrev(jax.jacfwd(ours)))(t0), second, rtol=1e-10, atol=1e-11)
+    np.testing.assert_allclose(jax.jit(jax.jacfwd(ours))(t0), jax.jit(jax.jacfwd(lapack))(t0), rtol=1e-11, atol=1e-12)
+    np.testing.assert_allclose(jax.jit(jax.jacrev(ours))(t0), jax.jit(jax.jacfwd(lapack))(t0), rtol=1e-11, atol=1e-12)
+    second = jax.jit(jax.jacfwd(jax.jacfwd(lapack)))(t0)
+    np.testing.assert_allclose(jax.jit(jax.jacfwd(jax.jacfwd(ours)))(t0), second, rtol=1e-10, atol=1e-11)
+    np.testing.assert_allclose(jax.jit(jax.jacrev(jax.jacfwd(ours)))(t0), second, rtol=1e-10, atol=1e-11)
     points = t0[None, :] + 0.1 * jnp.asarray(rng.normal(size=(4, 3)))
-    np.testing.assert_allclose(jit(jax.vmap(jax.jacfwd(ours)))(points), jit(jax.vmap(jax.jacfwd(lapack)))(points), rtol=1e-11, atol=1e-12)
+    np.testing.assert_allclose(jax.jit(jax.vmap(jax.jacfwd(ours)))(points), jax.jit(jax.vmap(jax.jacfwd(lapack)))(points), rtol=1e-11, atol=1e-12)
     # Several right-hand sides, and the inverse.
     np.testing.assert_allclose(
-        jit(jax.jacfwd(_misc.inverse_small))(jnp.asarray(A0)), jit(jax.jacfwd(jnp.linalg.inv))(jnp.asarray(A0)), rtol=1e-10, atol=1e-10
+        jax.jit(jax.jacfwd(_misc.inverse_small))(jnp.asarray(A0)), jax.jit(jax.jacfwd(jnp.linalg.inv))(jnp.asarray(A0)), rtol=1e-10, atol=1e-10
     )
 
 

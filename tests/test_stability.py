@@ -19,7 +19,6 @@ Closed forms (straight rod, bending stiffness B, length L, clamped at s = 0):
   angle $\\alpha$, $L\\sqrt{P/B} = 4K(m)$ and $h/L = 2E(m)/K(m) - 1$.
 """
 
-import jax.numpy as jnp
 import mpmath
 import numpy as np
 import pytest
@@ -28,8 +27,6 @@ import scipy.optimize
 import scipy.special
 
 import helixrod
-from helixrod._bvp._stability import piece_variations
-from helixrod._lie import vee
 from discrete_rod import centreline, equilibrium, hessian_eigenvalues
 
 L = 1.0
@@ -241,35 +238,3 @@ def test_unstable_planar_elastica_is_left_for_a_stable_state():
     assert bool(planar.ok) and int(planar.instability_index) >= 1
     found = helixrod.solve_boundary_value(rod, L, end=end)
     assert bool(found.stable) and abs(-float(found.force[2]) - P) > 1e-3 * P
-
-
-@pytest.mark.parametrize("law", ["linear", pytest.param("quartic", marks=pytest.mark.heavy)])
-def test_piece_variations_are_the_derivatives_of_the_flow(law):
-    """The Jacobi fields of one piece (`piece_variations`, fixed Runge--Kutta steps) against
-    central differences of adaptive `solve_static` solves at tolerance 1e-12: the end
-    position, frame and moment, and their variations along the six start wrenches, for an
-    anisotropic rod with bend-twist coupling and intrinsic curvature and for a nonlinear
-    strain energy (its inverse law solved by Newton's method)."""
-    if law == "linear":
-        rod = helixrod.Rod(1.0, 1.6, 0.9, K13=0.2, K23=-0.1, uhat=(0.3, 0.0, 0.5))
-    else:
-        energy = lambda v: 0.5 * (v[0] ** 2 + 1.5 * v[1] ** 2 + 0.8 * v[2] ** 2) + 0.1 * v[0] ** 4  # noqa: E731
-        rod = helixrod.StrainEnergyRod(energy, uhat=(0.3, 0.0, 0.5))
-    wrench = np.array([0.3, -0.5, 1.2, 0.4, 0.2, -0.3])
-    length = 1.3
-    ours = piece_variations(rod, jnp.asarray(wrench[:3]), jnp.asarray(wrench[3:]), length, 200)
-
-    def end(w):
-        sol = helixrod.solve_static(rod, w[:3], w[3:], length, outputs=("frame", "centreline"), rtol=1e-12, atol=1e-12)
-        return np.asarray(sol.x[-1]), np.asarray(sol.frame[-1])
-
-    x, frame = end(wrench)
-    np.testing.assert_allclose(np.asarray(ours.position), x, atol=1e-10)
-    np.testing.assert_allclose(np.asarray(ours.frame), frame, atol=1e-10)
-    np.testing.assert_allclose(np.asarray(ours.moment), wrench[3:] - np.cross(x, wrench[:3]), atol=1e-10)
-    step = 1e-5
-    for j in range(6):
-        (x_up, frame_up), (x_down, frame_down) = end(wrench + step * np.eye(6)[j]), end(wrench - step * np.eye(6)[j])
-        rotation = np.asarray(vee(jnp.asarray((frame_up - frame_down) / (2 * step) @ frame.T)))
-        np.testing.assert_allclose(np.asarray(ours.d_position[:, j]), (x_up - x_down) / (2 * step), atol=1e-7)
-        np.testing.assert_allclose(np.asarray(ours.d_rotation[:, j]), rotation, atol=1e-7)

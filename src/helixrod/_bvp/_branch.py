@@ -129,9 +129,9 @@ def _args(problem: _Problem, end_at, lam, options: BoundaryValueOptions) -> Shoo
     ell = length_scale(rod, length)
     k_scale = stiffness_scale(rod)
     scales = jnp.stack([ell, k_scale / ell**2, k_scale / ell])
-    tol = jnp.stack([options.ode_rtol, options.ode_atol]).astype(problem.length.dtype)
-    # The Jacobian at the ODE tolerance itself: it locates folds and branch points.
-    ode_tol = jnp.concatenate([tol, tol])
+    # The flows' Jacobian (`_flows`) is integrated at the ODE tolerance itself: it locates
+    # folds and branch points.
+    ode_tol = jnp.stack([options.ode_rtol, options.ode_atol]).astype(problem.length.dtype)
     end = end_at(lam).condition()
     return ShootingArgs(rod, length, problem.start, end, problem.ref_x, problem.ref_frame, scales, ode_tol)
 

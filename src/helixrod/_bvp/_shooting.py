@@ -10,8 +10,11 @@ geometric integrators keep the lab force and the moment about a fixed point exac
 round-off), so the wrench at the start of each piece is $(N, M_0 - (x_j - x_0)\\times N)$.
 The pieces are integrated in parallel (`vmap`) and the flow of each piece depends, up to a
 rigid motion, only on its local start wrench: its $18\\times 6$ Jacobian is computed once per
-piece (custom JVP), so a Jacobian costs about six integrations of the whole rod whatever
-$k$ (and most root-finder steps need none: Broyden updates).
+piece, so a Jacobian costs about six integrations of the whole rod whatever $k$ (and most
+root-finder steps need none: Broyden updates).  The root finder steers by the Jacobi fields
+of each piece, integrated by equal Runge--Kutta steps (`shooting_jacobian`); the
+derivatives of a solution come from `jax.jvp` of the adaptive integration itself, at the
+ODE tolerance (`implicit`).
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from ._bulk import bulk_helix_at
 from ._ends import CONTROL_INDEX, LOADED, TWEEZER, Clamped, EndCondition
 from ._options import BoundaryValueOptions
 from ._root_finder import LevenbergMarquardtBroyden
+from ._variations import flow_variations
 
 
 def piece_flow(theta, wrench, options: BoundaryValueOptions, ode_tol, ts=None):
@@ -88,15 +92,13 @@ def _flows(wrench, theta, ode_tol, *, options):
 @_flows.def_jvp
 def _flows_jvp(primals, tangents, *, options):
     # The Jacobian with respect to the start wrench depends on primals only: computed once
-    # per piece (six tangent integrations, all pieces in parallel) and reused by every
-    # tangent direction -- a Jacobian of k pieces costs what one of single shooting does.
-    # It is integrated at the Jacobian tolerance `ode_tol[2:]` (`jacobian_tolerance`: looser
-    # inside the root finder, where it only steers the steps; the ODE tolerance itself
-    # for the derivatives of the solution, `implicit`), the flows at `ode_tol[:2]`.
+    # per piece (six tangent integrations at the ODE tolerance, all pieces in parallel) and
+    # reused by every tangent direction -- a Jacobian of k pieces costs what one of single
+    # shooting does.
     wrench, theta, ode_tol = primals
     t_wrench, t_theta, _ = tangents
     out = per_piece(lambda w: piece_flow(theta, w, options, ode_tol), wrench)  # (k, 18)
-    jac = per_piece(lambda w: flow_jacobian(theta, w, options, ode_tol[2:]), wrench)  # (k, 6, 18)
+    jac = per_piece(lambda w: flow_jacobian(theta, w, options, ode_tol), wrench)  # (k, 6, 18)
     t_out = jnp.zeros_like(out)
     if t_wrench is not None:
         t_out = t_out + jnp.einsum("kij,ki->kj", jac, t_wrench)
@@ -138,7 +140,7 @@ class ShootingArgs(eqx.Module):
     ref_x: Array  # (k-1, 3) reference node positions
     ref_frame: Array  # (k-1, 3, 3) reference node frames
     scales: Array  # (ell, force scale, moment scale)
-    ode_tol: Array  # (rtol, atol) of the flows, then (rtol, atol) of their Jacobian
+    ode_tol: Array  # (rtol, atol) of the flows
 
 
 def nodes_of(y, args: ShootingArgs, k: int):
@@ -201,15 +203,26 @@ def shooting_residual(y, args: ShootingArgs, options: BoundaryValueOptions, mate
     return residual, pieces
 
 
+# Steps per radian of the Jacobi fields that steer the root finder (`flow_variations`):
+# coarse, because a Jacobian only sets the steps.  Measured on the clamped spring and the
+# 50-point curve of `benchmarks/bench_finite.py` (tolerances 1e-8 and 1e-10): 12, 6, 4 and 3
+# steps per radian took the same root-finder steps (5 and 6; 197 and 246 for the curve), 2
+# one more; the curve's solves alone 53-57 ms at 12, 25-37 ms at 4.
+STEERING_STEPS_PER_RADIAN = 4
+
+
 def shooting_jacobian(y, args: ShootingArgs, options: BoundaryValueOptions, flows):
-    """The Jacobian of the shooting equations at `y`, `(6k, 6k)`, and that of the pieces
-    (nodes, ends; last axis `6k`), given the `flows` `(k, 18)` already integrated at `y`
-    (at `args.ode_tol[:2]`): only the flows' Jacobian is integrated (at
-    `args.ode_tol[2:]`), not the flows again."""
+    """The Jacobian of the shooting equations at `y` that steers the root finder, `(6k,
+    6k)`, and that of the pieces (nodes, ends; last axis `6k`), given the `flows` `(k, 18)`
+    already integrated at `y`: only the flows' derivatives are integrated, as Jacobi fields
+    by equal Runge--Kutta steps (`flow_variations` at `STEERING_STEPS_PER_RADIAN`), not the
+    flows again, whatever the ODE tolerance: a Jacobian only sets the steps (its error makes
+    convergence linear with a rate of about its relative error, and Broyden updates recover
+    most of that), while the residual -- and so the root -- keeps the full ODE tolerance."""
     k = options.segments
-    theta = (args.rod, args.length / k)
+    rod, piece = args.rod, args.length / k
     _, local = _local_wrenches(y, args, k)
-    jacobian = per_piece(lambda w: flow_jacobian(theta, w, options, args.ode_tol[2:]), local)  # (k, 6, 18)
+    jacobian = per_piece(lambda w: flow_variations(rod, w, piece, options.max_ode_steps, STEERING_STEPS_PER_RADIAN), local)  # (k, 6, 18)
 
     no_theta = jnp.zeros(0, y.dtype)
 
@@ -325,14 +338,14 @@ def _implicit_tangents(y, pieces, flows, args, saveat, t_args, options: Boundary
 
     _, local = _local_wrenches(y, args, k)
     if saveat is None:
-        jacobian = per_piece(lambda w: flow_jacobian(q, w, options, args.ode_tol[:2], theta_of), local)  # (k, 6 + P, 18)
+        jacobian = per_piece(lambda w: flow_jacobian(q, w, options, args.ode_tol, theta_of), local)  # (k, 6 + P, 18)
         saved = None
     else:
         # The saved points and the piece's end in one integration (the end last).
         def one(wrench_and_index):
             wrench, j = wrench_and_index
             ts_of = lambda piece: jnp.append(saved_local_times(saveat, piece, j), piece)  # noqa: E731
-            return flow_and_jacobian(q, wrench, options, args.ode_tol[:2], theta_of, ts_of)
+            return flow_and_jacobian(q, wrench, options, args.ode_tol, theta_of, ts_of)
 
         states, state_jacobian = per_piece(one, (local, jnp.arange(k)))  # (k, p + 1, 18), (k, 6 + P, p + 1, 18)
         jacobian = state_jacobian[:, :, -1]
@@ -373,20 +386,6 @@ def rebase(y, args: ShootingArgs, k: int) -> tuple[Array, ShootingArgs]:
     """Move the node unknowns into the reference nodes (keeps node rotations small)."""
     _, _, xs, frames = nodes_of(y, args, k)
     return y.at[6:].set(0.0), eqx.tree_at(lambda a: (a.ref_x, a.ref_frame), args, (xs[1:], frames[1:]))
-
-
-# The Jacobian that steers the root finder is integrated at no tighter than this.
-_JACOBIAN_ODE_TOL = 1e-6
-
-
-def jacobian_tolerance(ode_tol):
-    """ODE (rtol, atol) of the Jacobian that steers the root finder: looser than the flows'
-    own.  The Jacobian only sets the step (its error makes convergence linear with a rate of
-    about its relative error, and Broyden updates recover most of that), while the residual
-    -- and so the root -- keeps the full ODE tolerance.  On the spring of
-    `benchmarks/bench_finite.py` its six tangent integrations take 25 steps (the stability
-    cap of the step) instead of 58 at 1e-8 and 179 at 1e-10."""
-    return jnp.maximum(ode_tol, _JACOBIAN_ODE_TOL)
 
 
 # -- initial guesses ------------------------------------------------------------------------

@@ -50,7 +50,6 @@ from ._shooting import (
     free_nodes,
     implicit,
     initial,
-    jacobian_tolerance,
     rebase,
     root,
     warm_start_of,
@@ -138,9 +137,8 @@ def _observe(args: ShootingArgs, N, M0, saveat, observed, x_last, frame_last):
 
 
 def ode_tolerances(options: BoundaryValueOptions, dtype):
-    """(rtol, atol) of the flows, then (rtol, atol) of their Jacobian (`jacobian_tolerance`)."""
-    ode_tol = jnp.stack([options.ode_rtol, options.ode_atol]).astype(dtype)
-    return jnp.concatenate([ode_tol, jacobian_tolerance(ode_tol)])
+    """(rtol, atol) of the flows."""
+    return jnp.stack([options.ode_rtol, options.ode_atol]).astype(dtype)
 
 
 @jit(static_argnames="guess_kind", run_once=True)

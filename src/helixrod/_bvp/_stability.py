@@ -56,25 +56,16 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._kirchhoff import linearised_rate
 from .._lie import hat
 from .._misc import inverse_small, lowest_eigenpair, no_gradient, solve_small, symmetric_eigenvalue_min
 from ._ends import LOADED, TWEEZER, EndCondition
 from ._options import BoundaryValueOptions
 from ._shooting import per_piece
+from ._variations import PieceVariations, piece_variations, variation_steps
 
 #: Extensibility of the pieces of the test, relative to their bending compliance: a
 #: regularisation of straight pieces (`piece_transfer`) far below any physical stretch.
 EXTENSIBILITY = 1e-5
-
-#: Steps of the stability test's integrations per unit of (linearised rate + |u|) x length:
-#: equal steps, because the adaptive steps follow the solution, not its variations -- on a
-#: straight rod the solution is exact in one step and the variations are not (a clamped
-#: twisted rod's critical moment was 2e-4 off on 16 pieces).  Measured on Greenhill's shaft
-#: (16 pieces, `piece_variations`), the relative error of its critical twist at 24 / 20 / 12 /
-#: 8 steps per radian: -6e-8 / -5e-8 / 2.8e-7 / 1.3e-6 (the Lie-group steps these replaced,
-#: differentiated in six directions: 1.8e-7 at 12).
-STEPS_PER_RADIAN = 12
 
 #: Dimensionless eigenvalues within NEUTRAL (p/16)^2 of zero (p pieces) are neutral, not
 #: unstable: a symmetry of the problem (an isotropic rod buckled under a load along its
@@ -137,11 +128,18 @@ def second_variation(rod, length, end: EndCondition, N, end_position, transfers)
     with a large diagonal (their eigenvalues lie far above the soft ones).  Also returns
     the mask of free slots."""
     p = transfers.shape[0]
-    pieces = jax.vmap(piece_hessian)(transfers)
-    size = 6 * (p + 1)
-    H = jnp.zeros((size, size), N.dtype)
-    for j in range(p):  # static; neighbouring pieces share a node's block
-        H = H.at[6 * j : 6 * j + 12, 6 * j : 6 * j + 12].add(pieces[j])
+    pieces = jax.vmap(piece_hessian)(transfers).reshape(p, 2, 6, 2, 6)
+    # Block-tridiagonal in the p + 1 nodes: node j's diagonal block sums its two pieces'.
+    pad = jnp.zeros((1, 6, 6), N.dtype)
+    diagonal = jnp.concatenate([pieces[:, 0, :, 0], pad]) + jnp.concatenate([pad, pieces[:, 1, :, 1]])
+    upper = jnp.concatenate([pieces[:, 0, :, 1], pad])  # node j with node j + 1
+    lower = jnp.concatenate([pad, pieces[:, 1, :, 0]])  # node j with node j - 1
+    eye, above = jnp.eye(p + 1, dtype=N.dtype), jnp.eye(p + 1, k=1, dtype=N.dtype)
+    H = (
+        jnp.einsum("ij,iab->iajb", eye, diagonal)
+        + jnp.einsum("ij,iab->iajb", above, upper)
+        + jnp.einsum("ji,iab->iajb", above, lower)
+    ).reshape(6 * (p + 1), 6 * (p + 1))
     # A Loaded end: the dead force acts at the point r from the end, carried by its frame:
     # where its line of action (through `point`) passes closest to the end.
     to_point = end.point - end_position
@@ -162,68 +160,6 @@ def second_variation(rod, length, end: EndCondition, N, end_position, transfers)
     return H, free
 
 
-class PieceVariations(eqx.Module):
-    """A piece integrated from the identity pose at the origin (`piece_variations`): its end
-    `position` `(3,)`, `frame` `(3, 3)` and lab `moment` `(3,)` (about the end), and the
-    variations of its end position `d_position` and spatial rotation `d_rotation` `(3, 6)`
-    along the six local start wrenches $(\\delta n, \\delta m)$."""
-
-    position: Float[Array, "3"]
-    frame: Float[Array, "3 3"]
-    moment: Float[Array, "3"]
-    d_position: Float[Array, "3 6"]
-    d_rotation: Float[Array, "3 6"]
-
-
-def piece_variations(rod, n0, m0, length, steps) -> PieceVariations:
-    """A piece of length `length` with local start wrench (`n0`, `m0`) and the variations
-    of its end along the six start wrenches, by `steps` equal classical Runge--Kutta steps
-    of the centreline, frame and Jacobi fields together.
-
-    In the frame of its start (identity pose at the origin) the lab force $N = n_0$ is
-    constant and the moment about the current point is $M = m_0 - x\\times N$; a variation
-    $(\\delta N, \\delta M_0)$ of the start wrench moves the centreline by $\\delta x$ and
-    turns the frame by the spatial rotation $\\delta\\theta$ ($\\delta D = [\\delta\\theta]_\\times D$),
-    which obey the linearised equations
-    $\\delta x' = \\delta\\theta\\times d_3$, $\\delta\\theta' = D\\,\\partial u/\\partial m\\,
-    D^T(\\delta M + M\\times\\delta\\theta)$, $\\delta M = \\delta M_0 - \\delta x\\times N - x\\times\\delta N$
-    (from $D' = D\\hat u$, $x' = De_3$ and $u = u(D^TM)$): six fields of six components
-    beside the pose, in a loop that XLA compiles into one small kernel
-    (~0.7 us a step here, where `jax.jvp` of the Lie-group steps in six directions took
-    ~4 us).  The frame is not kept on $SO(3)$ by the steps: its drift, of the order of
-    the steps' error, is projected out at the end."""
-    dtype = jnp.result_type(n0, m0, float)
-    N, M0 = n0[:, None], m0[:, None]
-    eye = jnp.eye(3, dtype=dtype)
-    zero = jnp.zeros((3, 3), dtype)
-    dN, dM0 = jnp.concatenate([eye, zero], 1), jnp.concatenate([zero, eye], 1)  # (3, 6): the six directions
-
-    def rates(state):
-        x, D, dx, dtheta = state
-        M = M0 - jnp.cross(x, N, axis=0)
-        d_moment = dM0 - jnp.cross(dx, N, axis=0) - jnp.cross(x, dN, axis=0) + jnp.cross(M, dtheta, axis=0)
-        twist = lambda v: jax.jvp(rod.twist, ((D.T @ M)[:, 0],), (v,))  # noqa: E731
-        u, du = jax.vmap(twist, out_axes=(None, 1))((D.T @ d_moment).T)
-        d3 = D[:, 2:3]
-        return d3, D @ hat(u), jnp.cross(dtheta, d3, axis=0), D @ du
-
-    h = length / steps
-
-    def step(_, y):
-        shifted = lambda a, k: jax.tree.map(lambda yi, ki: yi + a * ki, y, k)  # noqa: E731
-        k1 = rates(y)
-        k2 = rates(shifted(h / 2, k1))
-        k3 = rates(shifted(h / 2, k2))
-        k4 = rates(shifted(h, k3))
-        return jax.tree.map(lambda yi, a, b, c, d: yi + (h / 6) * (a + 2 * b + 2 * c + d), y, k1, k2, k3, k4)
-
-    start = (jnp.zeros((3, 1), dtype), eye, jnp.zeros((3, 6), dtype), jnp.zeros((3, 6), dtype))
-    x, D, dx, dtheta = jax.lax.fori_loop(0, steps, step, start)
-    D = D @ (1.5 * eye - 0.5 * D.T @ D)  # one Newton--Schulz step towards the nearest rotation
-    x = x[:, 0]
-    return PieceVariations(x, D, m0 - jnp.cross(x, n0), dx, dtheta)
-
-
 def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: BoundaryValueOptions):
     """(instability_index, stability_margin, unstable_direction) of the equilibrium with lab force `N`, lab
     moment `M0` at the start and shooting nodes `xs` `(k, 3)`, `frames` `(k, 3, 3)`, on
@@ -239,17 +175,12 @@ def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: Bounda
     x0 = xs[0]
     compliance = EXTENSIBILITY * h**3 / stiffness_range(rod)[1]
 
-    def steps_of(local):
-        u = rod.twist(local[3:])
-        rate = linearised_rate(rod, local[:3], local[3:]) + jnp.linalg.norm(u)
-        return jnp.clip(jnp.ceil(STEPS_PER_RADIAN * rate * h), 4, options.max_ode_steps).astype(jnp.int32)
-
     def sub_piece(node, _):
         # The pieces of one shooting piece in sequence: each starts where the last ended.
         x, frame = node
         moment = M0 - jnp.cross(x - x0, N)
         local = jnp.concatenate([frame.T @ N, frame.T @ moment])
-        piece = piece_variations(rod, local[:3], local[3:], h, steps_of(local))
+        piece = piece_variations(rod, local[:3], local[3:], h, variation_steps(rod, local[:3], local[3:], h, options.max_ode_steps))
         end_node = (x + frame @ piece.position, frame @ piece.frame)
         return end_node, (frame, moment, piece, jnp.linalg.norm(local[3:]), end_node[0])
 

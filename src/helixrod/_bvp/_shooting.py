@@ -162,18 +162,29 @@ def _local_wrenches(y, args: ShootingArgs, k: int):
     return (N, M0, xs, frames), local
 
 
-def _pieces(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: bool = True, flows_of=None):
-    """Start nodes and lab end states of every piece, and the flows `(k, 18)`.
+def _pieces(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: bool = True, flows_of=None, saveat=None):
+    """Start nodes and lab end states of every piece, the flows `(k, 18)` and the local
+    states at `saveat` `(k, p, 18)` (`saved_states`; None where `saveat` is None).
     `materialise`: differentiate the flows through their per-piece Jacobian (`_flows`; for
     the many directions of a Newton step) or directly (for the few directions of a
     parameter derivative); `flows_of`: the flows as a function of the local start wrenches
-    instead (`_given_flows`)."""
+    instead (`_given_flows`); `saveat` (not differentiated): each piece's integration also
+    saves at the points, by its dense output."""
     k = options.segments
     nodes, local = _local_wrenches(y, args, k)
     N, M0, xs, frames = nodes
     theta = (args.rod, args.length / k)
+    saved = None
     if flows_of is not None:
         flows = flows_of(local)
+    elif saveat is not None:
+
+        def one(wrench_and_index):
+            wrench, j = wrench_and_index
+            return piece_flow(theta, wrench, options, args.ode_tol, end_and_saved_times(saveat, theta[1], j))
+
+        states = per_piece(one, (local, jnp.arange(k)))  # (k, p + 1, 18): the end last
+        flows, saved = states[:, -1], states[:, :-1]
     elif materialise:
         flows = _flows(local, theta, args.ode_tol, options=options)
     else:
@@ -182,24 +193,24 @@ def _pieces(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: b
     x_end = xs + jnp.einsum("kij,kj->ki", frames, p)
     frame_end = frames @ R
     ends = (x_end, frame_end, jnp.einsum("kij,kj->ki", frame_end, n_end), jnp.einsum("kij,kj->ki", frame_end, m_end))
-    return (N, M0, xs, frames), ends, flows
+    return (N, M0, xs, frames), ends, flows, saved
 
 
-def _residual_and_flows(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: bool = True, flows_of=None):
-    """The 6k shooting equations; aux: ((nodes, ends), flows)."""
-    nodes, ends, flows = _pieces(y, args, options, materialise, flows_of)
+def _residual_and_flows(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: bool = True, flows_of=None, saveat=None):
+    """The 6k shooting equations; aux: ((nodes, ends), flows, saved) (`_pieces`)."""
+    nodes, ends, flows, saved = _pieces(y, args, options, materialise, flows_of, saveat)
     _, _, xs, frames = nodes
     x_end, frame_end, force_end, moment_end = ends
     junction_x = (x_end[:-1] - xs[1:]) / args.scales[0]
     junction_r = gibbs(jnp.swapaxes(frames[1:], -1, -2) @ frame_end[:-1])
     end = args.end.residual(x_end[-1], frame_end[-1], force_end[-1], moment_end[-1], args.scales)
     residual = jnp.concatenate([jnp.concatenate([junction_x, junction_r], -1).reshape(-1), end])
-    return residual, ((nodes, ends), flows)
+    return residual, ((nodes, ends), flows, saved)
 
 
 def shooting_residual(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: bool = True):
     """The 6k shooting equations; aux: the nodes and end states."""
-    residual, (pieces, _) = _residual_and_flows(y, args, options, materialise)
+    residual, (pieces, *_) = _residual_and_flows(y, args, options, materialise)
     return residual, pieces
 
 
@@ -227,7 +238,7 @@ def shooting_jacobian(y, args: ShootingArgs, options: BoundaryValueOptions, flow
     no_theta = jnp.zeros(0, y.dtype)
 
     def residual(z):
-        r, (pieces, _) = _residual_and_flows(z, args, options, flows_of=lambda w: _given_flows(w, no_theta, flows, jacobian))
+        r, (pieces, *_) = _residual_and_flows(z, args, options, flows_of=lambda w: _given_flows(w, no_theta, flows, jacobian))
         return r, pieces
 
     return _jacobian_columns(residual, y)
@@ -240,25 +251,33 @@ def _jacobian_columns(residual, y):
     return jax.vmap(lin, out_axes=-1)(jnp.eye(y.size, dtype=y.dtype))
 
 
-def root(y0, args: ShootingArgs, options: BoundaryValueOptions):
+def root(y0, args: ShootingArgs, options: BoundaryValueOptions, saveat=None):
     """Solve the shooting equations (no derivatives: see `implicit`).  Returns the root,
-    the pieces (nodes, ends) and the flows there, the largest scaled residual, the result
-    code and the number of steps.  Each step integrates the flows once; a fresh Jacobian
-    integrates only their derivatives (`shooting_jacobian`)."""
-    fn = lambda y, a: _residual_and_flows(y, a, options, materialise=False)  # noqa: E731
+    the pieces (nodes, ends), the flows and the local states at `saveat` there
+    (`_pieces`), the largest scaled residual, the result code and the number of steps.
+    Each step integrates the flows once, saving at `saveat` by the dense output of that
+    integration (so the states at the root need no integration of their own); a fresh
+    Jacobian integrates only their derivatives (`shooting_jacobian`)."""
+    fn = lambda y, a: _residual_and_flows(y, a, options, materialise=False, saveat=saveat)  # noqa: E731
     jacobian = lambda y, a, aux: shooting_jacobian(y, a, options, aux[1])[0]  # noqa: E731
     solver = LevenbergMarquardtBroyden(atol=options.atol, damped=options.method != "newton", jacobian=jacobian)
-    y0, args = no_gradient((y0, args))
+    y0, args, saveat = no_gradient((y0, args, saveat))
     sol = optx.root_find(fn, solver, y0, args, has_aux=True, max_steps=options.max_steps, throw=False)
     residual = jnp.max(jnp.abs(sol.stats["residual"]))
-    pieces, flows = sol.aux
-    return sol.value, pieces, flows, residual, sol.result, sol.stats["num_steps"]
+    pieces, flows, saved = sol.aux
+    return sol.value, pieces, flows, saved, residual, sol.result, sol.stats["num_steps"]
 
 
 def saved_local_times(saveat, piece, j):
     """The arc lengths `saveat` local to piece `j` (of length `piece`), clipped to it: points
     outside the piece land on its ends, where `saved_states` never selects them."""
     return jnp.clip(saveat - j * piece, 0.0, piece)
+
+
+def end_and_saved_times(saveat, piece, j):
+    """`saved_local_times`, then the piece's end: one integration gives both the states at
+    the saved points and the flow."""
+    return jnp.append(saved_local_times(saveat, piece, j), piece)
 
 
 def saved_states(nodes, states, saveat, piece):
@@ -273,24 +292,11 @@ def saved_states(nodes, states, saveat, piece):
     return x, frame, local[:, 12:15], local[:, 15:]
 
 
-def observed_states(y, args: ShootingArgs, options: BoundaryValueOptions, saveat):
-    """`saved_states` at the root `y`: each piece integrated once more, saving at the points
-    (no derivatives: see `implicit`)."""
-    k = options.segments
-    nodes, local = _local_wrenches(y, args, k)
-    piece = args.length / k
-
-    def one(wrench_and_index):
-        wrench, j = wrench_and_index
-        return piece_flow((args.rod, piece), wrench, options, args.ode_tol, saved_local_times(saveat, piece, j))
-
-    return saved_states(nodes, per_piece(one, (local, jnp.arange(k))), saveat, piece)
-
-
 @eqx.filter_custom_jvp
-def implicit(y, pieces, flows, args, saveat, *, options):
+def implicit(y, pieces, flows, saved, args, saveat, *, options):
     """The root `y` of the shooting equations at `args`, the `pieces` there and the states
-    at `saveat` (`observed_states`; None where `saveat` is None), with the derivatives of
+    at `saveat` (`saved_states` of the local states `saved` that the root finder's last
+    integration saved, `root`; None where `saveat` is None), with the derivatives of
     the implicit function theorem: $\\dot y = -J^{-1}\\,\\partial_\\theta F\\,\\dot\\theta$ and
     $\\dot P = P_y\\dot y + \\partial_\\theta P\\,\\dot\\theta$ (the states likewise), with the
     Jacobians $J = F_y$, $P_y$, $\\partial_\\theta F$ and $\\partial_\\theta P$ from the `flows`
@@ -301,20 +307,20 @@ def implicit(y, pieces, flows, args, saveat, *, options):
     piece, whatever the number of tangent directions.  (Not `optimistix.ImplicitAdjoint`:
     its linear solve raises on a non-finite input, so one failed point would abort a
     differentiated batch; here a failed point gets NaN derivatives.  Nor a derivative of
-    `observed_states`' own integration: a differentiated copy of the integrator the more in
+    the saved states' own integration: a differentiated copy of the integrator the more in
     the program: a `jax.jacfwd` of a solve with 25 saved points compiled in 11.5 s of XLA
     with it, 7.7 s without; the shape fit of `benchmarks/bench_finite.py` 17.7-18.0 -> 14.5-15.3 s
     at its first call, 74-79 -> 53-55 ms later, 2 cores.)"""
-    observed = None if saveat is None else observed_states(y, args, options, saveat)
+    observed = None if saveat is None else saved_states(pieces[0], saved, saveat, args.length / options.segments)
     return y, pieces, observed
 
 
 @implicit.def_jvp
 def _implicit_jvp(primals, tangents, *, options):
-    y, pieces, flows, args, saveat = primals
-    t_args, t_saveat = tangents[3], tangents[4]
+    y, pieces, flows, saved, args, saveat = primals
+    t_args, t_saveat = tangents[4], tangents[5]
     if t_args is None or not jax.tree.leaves(t_args):
-        out = implicit(y, pieces, flows, args, saveat, options=options)
+        out = implicit(y, pieces, flows, saved, args, saveat, options=options)
         t_out = jax.tree.map(jnp.zeros_like, out)
     else:
         out, t_out = _implicit_tangents(y, pieces, flows, args, saveat, t_args, options)
@@ -344,7 +350,7 @@ def _implicit_tangents(y, pieces, flows, args, saveat, t_args, options: Boundary
         # The saved points and the piece's end in one integration (the end last).
         def one(wrench_and_index):
             wrench, j = wrench_and_index
-            ts_of = lambda piece: jnp.append(saved_local_times(saveat, piece, j), piece)  # noqa: E731
+            ts_of = lambda piece: end_and_saved_times(saveat, piece, j)  # noqa: E731
             return flow_and_jacobian(q, wrench, options, args.ode_tol, theta_of, ts_of)
 
         states, state_jacobian = per_piece(one, (local, jnp.arange(k)))  # (k, p + 1, 18), (k, 6 + P, p + 1, 18)
@@ -355,7 +361,7 @@ def _implicit_tangents(y, pieces, flows, args, saveat, t_args, options: Boundary
         theta = ravel_pytree((d.rod, d.length))[0]
         given = lambda w: _given_flows(w, theta, flows, jacobian)  # noqa: E731
         a = eqx.combine(d, rest)
-        r, (pieces, _) = _residual_and_flows(z, a, options, flows_of=given)
+        r, (pieces, *_) = _residual_and_flows(z, a, options, flows_of=given)
         observed = None
         if saved is not None:
             nodes, local_z = _local_wrenches(z, a, k)

@@ -240,9 +240,9 @@ def solve(rod, length, start: Clamped, end: EndCondition, guess, saveat, options
         args = eqx.tree_at(lambda a: (a.ref_x, a.ref_frame), args, (ref_x, ref_frame))
 
     # Intermediate homotopy steps need not converge: only the last solve counts.
-    y, pieces, flows, residual, result, n = root(y0, args, options)
+    y, pieces, flows, saved, residual, result, n = root(y0, args, options, saveat)
     steps = steps + n
-    y, (nodes, ends), observed = implicit(y, pieces, flows, args, saveat, options=options)
+    y, (nodes, ends), observed = implicit(y, pieces, flows, saved, args, saveat, options=options)
     (N, M0, xs, frames), (x_end, frame_end, force_end, moment_end) = nodes, ends
     residual = jax.lax.stop_gradient(jnp.where(jnp.isfinite(residual) & valid, residual, jnp.inf))
     tolerance = jnp.asarray(10 * options.atol, dtype)

@@ -51,7 +51,6 @@ second); where it does not hold the result is flagged unresolved (index $-1$, ma
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float

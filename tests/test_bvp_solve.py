@@ -224,6 +224,19 @@ def test_option_tolerances_are_host_scalars_or_traced_arrays():
     assert float(traced) == pytest.approx(6e-7)
     assert with_settings(None) is with_settings(None, segments=None)
     assert with_settings(None, atol=1e-7).atol == 1e-7 and with_settings(None) == hr.BoundaryValueOptions()
+    # The default options with the same hashable settings are built once; the settings'
+    # types are part of the key, and unhashable or invalid settings are built (and checked)
+    # every time.
+    assert with_settings(None, atol=1e-7, segments=2) is with_settings(None, segments=2, atol=1e-7)
+    assert with_settings(None, segments=2) is not with_settings(None, segments=3)
+    assert with_settings(None, segments=2).segments == 2 and with_settings(None, segments=3).segments == 3
+    with_settings(None, segments=1)
+    with pytest.raises(ValueError, match="segments must be an integer"):
+        with_settings(None, segments=True)
+    for _ in range(2):
+        with pytest.raises(ValueError, match="atol must be finite"):
+            with_settings(None, atol=-1.0)
+    assert float(with_settings(None, atol=jnp.asarray(1e-6)).atol) == 1e-6
 
 
 @pytest.mark.heavy

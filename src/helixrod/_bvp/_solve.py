@@ -393,9 +393,11 @@ def solve_boundary_value(
         options = dataclasses.replace(options, segments=segments_needed, stability_pieces=min(pieces, MAX_STABILITY_PIECES))
     guess = fit_guess(guess, options.segments, start)
     sol = solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind)
-    if is_concrete(sol) and jnp.ndim(sol.residual) == 0:
+    # One program made every field: one of them says whether they are concrete.
+    single = is_concrete(sol.residual) and jnp.ndim(sol.residual) == 0
+    if single:
         sol = _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind)
-    if throw and is_concrete(sol) and jnp.ndim(sol.residual) == 0 and not succeeded(sol.result):
+    if throw and single and not succeeded(sol.result):
         raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _hint(sol, rod, length, start, end, guess, guess_kind))
     return raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _HINT) if throw else sol
 

@@ -173,7 +173,8 @@ def _pieces(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: b
     k = options.segments
     nodes, local = _local_wrenches(y, args, k)
     N, M0, xs, frames = nodes
-    theta = (args.rod, args.length / k)
+    piece = args.length / k
+    theta = (args.rod, piece)
     saved = None
     if flows_of is not None:
         flows = flows_of(local)
@@ -181,7 +182,7 @@ def _pieces(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: b
 
         def one(wrench_and_index):
             wrench, j = wrench_and_index
-            return piece_flow(theta, wrench, options, args.ode_tol, end_and_saved_times(saveat, theta[1], j))
+            return piece_flow(theta, wrench, options, args.ode_tol, end_and_saved_times(saveat, piece, j))
 
         states = per_piece(one, (local, jnp.arange(k)))  # (k, p + 1, 18): the end last
         flows, saved = states[:, -1], states[:, :-1]

@@ -41,6 +41,13 @@ def variation_steps(rod, n0, m0, length, max_steps: int, per_radian: float = STE
     return jnp.clip(jnp.ceil(per_radian * rate * length), MIN_STEPS, max_steps).astype(jnp.int32)
 
 
+def _start_directions(dtype) -> tuple[Array, Array]:
+    """The six variations of a local start wrench $(\delta n, \delta m)$ as the columns of
+    their force and moment parts, `(3, 6)` each."""
+    eye, zero = jnp.eye(3, dtype=dtype), jnp.zeros((3, 3), dtype)
+    return jnp.concatenate([eye, zero], 1), jnp.concatenate([zero, eye], 1)
+
+
 class PieceVariations(eqx.Module):
     """A piece integrated from the identity pose at the origin (`piece_variations`): its end
     `position` `(3,)`, `frame` `(3, 3)` and lab `moment` `(3,)` (about the end), and the
@@ -73,8 +80,7 @@ def piece_variations(rod, n0, m0, length, steps) -> PieceVariations:
     dtype = jnp.result_type(n0, m0, float)
     N, M0 = n0[:, None], m0[:, None]
     eye = jnp.eye(3, dtype=dtype)
-    zero = jnp.zeros((3, 3), dtype)
-    dN, dM0 = jnp.concatenate([eye, zero], 1), jnp.concatenate([zero, eye], 1)  # (3, 6): the six directions
+    dN, dM0 = _start_directions(dtype)
 
     def rates(state):
         x, D, dx, dtheta = state
@@ -113,8 +119,7 @@ def flow_variations(rod, wrench, length, max_steps: int, per_radian: float = STE
     n0, m0 = wrench[:3], wrench[3:]
     piece = piece_variations(rod, n0, m0, length, variation_steps(rod, n0, m0, length, max_steps, per_radian))
     R, x, dx, dtheta = piece.frame, piece.position, piece.d_position, piece.d_rotation
-    eye, zero = jnp.eye(3, dtype=dx.dtype), jnp.zeros((3, 3), dx.dtype)
-    dN, dm0 = jnp.concatenate([eye, zero], 1), jnp.concatenate([zero, eye], 1)
+    dN, dm0 = _start_directions(dx.dtype)
     d_frame = jax.vmap(lambda t: hat(t) @ R, in_axes=1)(dtheta).reshape(6, 9)
     d_force = R.T @ (dN + jnp.cross(n0[:, None], dtheta, axis=0))
     d_moment = dm0 - jnp.cross(dx, n0[:, None], axis=0) - jnp.cross(x[:, None], dN, axis=0)

@@ -42,7 +42,7 @@ def variation_steps(rod, n0, m0, length, max_steps: int, per_radian: float = STE
 
 
 def _start_directions(dtype) -> tuple[Array, Array]:
-    """The six variations of a local start wrench $(\delta n, \delta m)$ as the columns of
+    """The six variations of a local start wrench $(\\delta n, \\delta m)$ as the columns of
     their force and moment parts, `(3, 6)` each."""
     eye, zero = jnp.eye(3, dtype=dtype), jnp.zeros((3, 3), dtype)
     return jnp.concatenate([eye, zero], 1), jnp.concatenate([zero, eye], 1)

@@ -16,9 +16,18 @@ its own processes:
 The targets of issue 20: every first call <= 5 s cold and <= 1.5 s warm on 2 cores;
 `jax.grad` through `solve_static` <= 15 s and <= 1 GB.
 
+Program sizes (`--sizes`): each case once more in a fresh process with an empty cache, with
+XLA dumping every program it compiles (``--xla_dump_to``): the number of programs, their
+HLO instructions as JAX hands them to XLA (before XLA's passes) and as XLA compiles them
+(after), in total and for the largest program.  `--source PATH` measures another source tree
+of helixrod (e.g. a `git worktree` of an older commit) under `--label`, so that sizes before
+and after a change sit side by side; the dump's own cost makes these runs' times meaningless.
+
 Usage: python benchmarks/bench_first_calls.py [--quick] [--cases a,b] [--one-core]
-Writes benchmarks/results/bench_first_calls.json; the cases not run keep their earlier results
-there (those of a run on the same machine with the same --one-core setting).
+       python benchmarks/bench_first_calls.py --sizes [--cases a,b] [--source PATH --label NAME]
+Writes benchmarks/results/bench_first_calls.json (bench_program_sizes.json with --sizes); the
+cases not run keep their earlier results there (those of a run on the same machine with the
+same --one-core setting; sizes: of the same label).
 """
 
 from __future__ import annotations
@@ -26,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -101,10 +111,11 @@ print(json.dumps(dict(first_wall_s=first_wall, first_cpu_s=first_cpu, later_wall
 """
 
 
-def run_case(name: str, cache: str, default_xla: bool, one_core: bool, low_opt: bool = False) -> dict:
+def run_case(name: str, cache: str, default_xla: bool, one_core: bool, low_opt: bool = False, env_extra: dict | None = None) -> dict:
     env = dict(os.environ)
     env["HELIXROD_COMPILER_OPTIONS"] = "0" if default_xla else "1"
     env["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1" if low_opt else "0"
+    env.update(env_extra or {})
     command = [sys.executable, "-c", RUNNER.format(setup=CASES[name]), cache]
     if one_core:
         command = ["taskset", "-c", "1"] + command
@@ -115,12 +126,75 @@ def run_case(name: str, cache: str, default_xla: bool, one_core: bool, low_opt: 
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+#: An HLO instruction in XLA's text dump: an indented `name = type op(...)` line.
+_INSTRUCTION = re.compile(r"^\s+(?:ROOT\s+)?\S+ = \S", re.M)
+
+
+def hlo_instructions(path: Path) -> int:
+    """The number of HLO instructions in one module of XLA's text dump."""
+    return len(_INSTRUCTION.findall(path.read_text(errors="replace")))
+
+
+def program_sizes(name: str, source: str | None) -> dict:
+    """The programs the first call of case `name` compiles (cold, fresh process), from XLA's
+    dump: how many, their HLO instructions before and after XLA's passes, and the largest."""
+    with tempfile.TemporaryDirectory() as dump, tempfile.TemporaryDirectory() as cache:
+        flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_dump_to={dump} --xla_dump_hlo_as_text".strip()
+        extra = {"XLA_FLAGS": flags}
+        if source:
+            extra["PYTHONPATH"] = os.pathsep.join(filter(None, [source, os.environ.get("PYTHONPATH")]))
+        run_case(name, cache, False, False, env_extra=extra)
+        programs = []
+        for before in sorted(Path(dump).glob("*.before_optimizations.txt")):
+            module = before.name[: -len(".before_optimizations.txt")]
+            after = next(iter(Path(dump).glob(f"{module}.*after_optimizations.txt")), None)
+            programs.append(dict(name=module.split(".", 1)[-1], hlo_ops=hlo_instructions(before),
+                                 hlo_ops_optimized=hlo_instructions(after) if after else None))
+    largest = max(programs, key=lambda p: p["hlo_ops"])
+    return dict(programs=len(programs), hlo_ops=sum(p["hlo_ops"] for p in programs),
+                hlo_ops_optimized=sum(p["hlo_ops_optimized"] or 0 for p in programs), largest=largest)
+
+
+def _commit(source: str | None) -> str:
+    """The commit of the source tree measured (`git describe`), or "unknown"."""
+    where = Path(source).resolve() if source else Path(__file__).resolve().parent
+    out = subprocess.run(["git", "-C", str(where), "log", "-1", "--format=%h %cs"], capture_output=True, text=True, check=False)
+    return out.stdout.strip() or "unknown"
+
+
+def main_sizes(names: list[str], source: str | None, label: str) -> None:
+    out = Path(__file__).parent / "results" / "bench_program_sizes.json"
+    try:
+        labels = json.loads(out.read_text())["labels"]
+    except (OSError, ValueError, KeyError):
+        labels = {}
+    entry = labels.get(label, {})
+    commit = _commit(source)
+    cases = entry.get("cases", {}) if entry.get("commit") == commit else {}
+    print(f"{label} ({commit}): {'case':34s} {'programs':>8s} {'HLO in':>8s} {'HLO out':>8s}  largest (in / out)")
+    for name in names:
+        r = program_sizes(name, source)
+        cases[name] = r
+        big = r["largest"]
+        print(f"  {name:40s} {r['programs']:8d} {r['hlo_ops']:8d} {r['hlo_ops_optimized']:8d}  "
+              f"{big['name']} ({big['hlo_ops']} / {big['hlo_ops_optimized']})", flush=True)
+    labels[label] = dict(commit=commit, cases=cases)
+    out.write_text(json.dumps(dict(labels=labels), indent=1))
+    print(f"wrote {out}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", default=",".join(CASES))
     parser.add_argument("--quick", action="store_true", help="the three shortest cases")
     parser.add_argument("--one-core", action="store_true", help="pin each process to one core (taskset -c 1)")
+    parser.add_argument("--sizes", action="store_true", help="program sizes from XLA's dump instead of times")
+    parser.add_argument("--source", default=None, help="with --sizes: the helixrod source tree (its src/) to measure")
+    parser.add_argument("--label", default="current", help="with --sizes: the name the sizes are stored under")
     args = parser.parse_args()
+    if args.sizes:
+        main_sizes(args.cases.split(","), args.source, args.label)
+        return
     out = Path(__file__).parent / "results" / "bench_first_calls.json"
     machine = f"{os.cpu_count()} cores ({cpu_model()})"
     # Cases not run now keep their earlier results, from a run on this machine with the same --one-core.

@@ -6,6 +6,8 @@ References: exact uniform helices and the transport of a moment between points. 
 with these ends, vmapped batches of mixed kinds included: tests/test_bvp_solve.py, where
 they share one compiled configuration.)"""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -92,6 +94,11 @@ def test_each_kind_in_the_uniform_form():
     r = tweezer.residual(x, R, F + jnp.array([0.0, 0.0, 3.0]), m_end, scales)
     np.testing.assert_allclose(r, [0, 0, 1.0, 0, 0, 0], atol=1e-15)
     assert tweezer.condition() is tweezer  # the uniform form is its own condition
+    # Built from its leaves (`end_condition`, no initialiser): the Module its initialiser builds.
+    for cond in (clamped, about_end, about_point, tweezer):
+        rebuilt = hr.EndCondition(*(getattr(cond, f.name) for f in dataclasses.fields(cond)))
+        assert jax.tree.structure(rebuilt) == jax.tree.structure(cond)
+        tree_allclose(rebuilt, cond, rtol=0, atol=0)
 
 
 def test_stack_ends_stacks_the_uniform_forms():

@@ -172,6 +172,31 @@ def test_small_inverse_determinant_and_matrix_right_hand_sides_match_lapack(rng)
     assert float(determinant_small(np.diag([2.0, -3.0, 0.5]))) == pytest.approx(-3.0, rel=1e-15)
 
 
+def test_elimination_unrolled_and_looped_agree(rng, monkeypatch):
+    """Up to `UNROLLED_SIZE` unknowns the elimination is unrolled, above it a loop over its
+    steps (a smaller program): the same arithmetic either way -- solutions, determinant,
+    the linear form and derivatives of a system that needs row swaps."""
+    n = _misc.UNROLLED_SIZE + 2
+    A = rng.normal(size=(n, n))
+    A[0, 0] = 1e-3  # a pivot search that swaps rows
+    b = rng.normal(size=(n, 2))
+
+    def results():
+        def of(A, b):
+            return (_misc.solve_small(A, b), _misc.determinant_small(A), _misc.solve_small_linear(A, b),
+                    jax.jacfwd(_misc.solve_small)(A, b[:, 0]))
+        return jax.jit(of)(A, b), str(jax.make_jaxpr(of)(A, b))
+
+    looped, program = results()
+    assert "scan" in program  # fori_loop's form
+    monkeypatch.setattr(_misc, "UNROLLED_SIZE", n)
+    unrolled, program = results()
+    assert "scan" not in program and "while" not in program
+    for a, u in zip(jax.tree.leaves(looped), jax.tree.leaves(unrolled)):
+        np.testing.assert_allclose(a, u, rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(looped[0], np.linalg.solve(A, b), rtol=1e-12)
+
+
 def test_lowest_eigenpair_matches_eigh(rng):
     """Count below a shift, lowest eigenvalue and its vector against `numpy.linalg.eigh`, on
     random symmetric matrices, ones with a double lowest eigenvalue, ones with a huge

@@ -159,35 +159,60 @@ def jacobian_forward(fn, x: Array, *, has_aux: bool = False, through_loops: bool
     return (jacobian, aux) if has_aux else jacobian
 
 
+#: Systems of up to this many unknowns are eliminated unrolled (each step its own
+#: operations, which fuse with their neighbours: the tweezer model's 5 x 5 Newton steps, per
+#: point of a vmapped model); larger ones in a loop over the steps, whose program holds one
+#: step: an unrolled 6 x 6 elimination is ~100 HLO operations at each of its call sites (the
+#: stability test's, the atlas's), which XLA compiled in ~0.8 s of
+#: `solve_boundary_value`'s first call (one core; the same results bitwise, its later calls
+#: unchanged: *Finite rods* in the README).
+UNROLLED_SIZE = 5
+
+
+def _steps(n: int, step, carry):
+    """`step(k, carry)` for k = 0, ..., n - 1: unrolled up to `UNROLLED_SIZE`, else a loop."""
+    if n <= UNROLLED_SIZE:
+        for k in range(n):
+            carry = step(k, carry)
+        return carry
+    return jax.lax.fori_loop(0, n, step, carry)
+
+
 def _eliminate(M: Array) -> tuple[Array, Array, Array, Array]:
     """Gaussian elimination with partial pivoting on the first n columns of `M` `(n, n + k)`
-    (a matrix, or a matrix and right-hand sides), unrolled in jnp operations: `(orders,
+    (a matrix, or a matrix and right-hand sides), in jnp operations (`_steps`): `(orders,
     factors, reduced, parity)`, the row order and the multipliers of each of the n
     eliminations (`(n, n)` each), the reduced `M` (upper-triangular in its first n columns)
     and the parity (+1/-1) of the row permutation."""
     n = M.shape[0]
     rows = jnp.arange(n)
-    parity = jnp.ones((), M.dtype)
-    orders, factors = [], []
-    for k in range(n):
-        pivot = k + jnp.argmax(jnp.abs(M[k:, k]))
+
+    def step(k, carry):
+        M, orders, factors, parity = carry
+        # The first largest |entry| of column k on or below the diagonal (NaN first, as argmax).
+        pivot = jnp.argmax(jnp.where(rows >= k, jnp.abs(M[:, k]), -1.0)).astype(rows.dtype)
         order = jnp.where(rows == k, pivot, jnp.where(rows == pivot, k, rows))
         parity = jnp.where(pivot == k, parity, -parity)
         M = M[order]
         factor = jnp.where(rows > k, M[:, k] / M[k, k], 0.0)
         M = M - factor[:, None] * M[k][None, :]
-        orders.append(order)
-        factors.append(factor)
-    return jnp.stack(orders), jnp.stack(factors), M, parity
+        return M, orders.at[k].set(order), factors.at[k].set(factor), parity
+
+    init = (M, jnp.zeros((n, n), rows.dtype), jnp.zeros((n, n), M.dtype), jnp.ones((), M.dtype))
+    M, orders, factors, parity = _steps(n, step, init)
+    return orders, factors, M, parity
 
 
 def _back_substitute(U: Array, c: Array) -> Array:
     """$U^{-1} c$ for the upper-triangular `U` of `_eliminate` (linear in `c`: reverse mode
     transposes it)."""
-    x = jnp.zeros_like(c)
-    for k in reversed(range(U.shape[0])):
-        x = x.at[k].set((c[k] - U[k] @ x) / U[k, k])
-    return x
+    n = U.shape[0]
+
+    def step(i, x):
+        k = n - 1 - i
+        return x.at[k].set((c[k] - U[k] @ x) / U[k, k])
+
+    return _steps(n, step, jnp.zeros_like(c))
 
 
 def _as_columns(solve):
@@ -223,17 +248,20 @@ def solve_small_linear(A: Array, b: Array) -> Array:
     joint elimination of `[A | b]`), and under `vmap` over b alone (the tangents of
     `jax.jacfwd`) A's part is not batched, so that each tangent costs a substitution."""
     orders, factors, U, _ = _eliminate(A)
-    for k in range(A.shape[-1]):
+
+    def step(k, b):
         b = b[orders[k]]
-        b = b - factors[k][:, None] * b[k][None, :]
-    return _back_substitute(U, b)
+        return b - factors[k][:, None] * b[k][None, :]
+
+    return _back_substitute(U, _steps(A.shape[-1], step, b))
 
 
 @jax.custom_jvp
 @_as_columns
 def solve_small(A: Array, b: Array) -> Array:
     """$A^{-1} b$ for one small square system (n <= ~12; `b` `(n,)` or `(n, k)`; batch with
-    `vmap`) by Gaussian elimination with partial pivoting, unrolled in jnp operations.
+    `vmap`) by Gaussian elimination with partial pivoting in jnp operations (unrolled up to
+    `UNROLLED_SIZE` unknowns, else a loop).
 
     Used for the many tiny per-point systems inside vmapped models instead of
     `jnp.linalg.solve`, whose LAPACK calls (getrf/trsm through XLA's FFI) deadlocked in

@@ -257,14 +257,14 @@ def cached_call(plain, fallback, name: str, static_argnames, compiler_options: d
         if signature in _refused or (_directory / f"{signature}.refused").exists():
             _refused.add(signature)
             return fallback(*args, **kwargs)
-        program = _load(signature, compiler_options) or _export(signature, plain, treedef, statics, leaves, compiler_options)
+        program = _load(signature, name, compiler_options) or _export(signature, name, plain, treedef, statics, leaves, compiler_options)
     if program is None:
         return fallback(*args, **kwargs)
     call, out_tree = program
     return jax.tree.unflatten(out_tree, call(*leaves))
 
 
-def _load(signature: str, compiler_options: dict):
+def _load(signature: str, name: str, compiler_options: dict):
     path = _directory / f"{signature}.export"
     try:
         record = _loads(path.read_bytes())
@@ -272,13 +272,13 @@ def _load(signature: str, compiler_options: dict):
         out_tree = _loads(record["out_tree"])
     except Exception:  # a missing, partial or foreign file: export again
         return None
-    program = (_compiled(exported, compiler_options), out_tree)
+    program = (_compiled(exported, compiler_options, name), out_tree)
     _programs[signature] = program
     counts["loaded"] += 1
     return program
 
 
-def _export(signature: str, plain, treedef, statics: dict, leaves, compiler_options: dict):
+def _export(signature: str, name: str, plain, treedef, statics: dict, leaves, compiler_options: dict):
     """Export, save and compile the program of `signature`; None where `jax.export` refuses
     it (a host callback, a custom call such as the register kernel's): the refusal is saved
     too, so that later processes take the plain path at once (this one traces the program
@@ -304,19 +304,25 @@ def _export(signature: str, plain, treedef, statics: dict, leaves, compiler_opti
             _write(_directory / f"{signature}.refused", b"")
         return None
     _write(_directory / f"{signature}.export", _dumps(record))
-    program = (_compiled(exported, compiler_options), out_trees[-1])
+    program = (_compiled(exported, compiler_options, name), out_trees[-1])
     _programs[signature] = program
     counts["exported"] += 1
     return program
 
 
-def _compiled(exported, compiler_options: dict):
-    """The exported program as a `jax.jit` function on the default device.  Its placement is
-    fixed: left open, an argument already placed by an earlier program (committed) and one
-    made from NumPy (not) lowered to two programs, compiled twice (measured: the shape fit's
-    Jacobian, 13 s each)."""
+def _compiled(exported, compiler_options: dict, name: str):
+    """The exported program as a `jax.jit` function on the default device, named after the
+    function it was traced from (`name`: what JAX's logs, profiles and XLA's dumps show).
+    Its placement is fixed: left open, an argument already placed by an earlier program
+    (committed) and one made from NumPy (not) lowered to two programs, compiled twice
+    (measured: the shape fit's Jacobian, 13 s each)."""
+
+    def program(*leaves):
+        return exported.call(*leaves)
+
+    program.__name__ = program.__qualname__ = name.rsplit(".", 1)[-1]
     device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
-    return jax.jit(exported.call, in_shardings=device, compiler_options=compiler_options or None)
+    return jax.jit(program, in_shardings=device, compiler_options=compiler_options or None)
 
 
 def _write(path: Path, data: bytes) -> None:

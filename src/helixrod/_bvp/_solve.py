@@ -376,7 +376,7 @@ def solve_boundary_value(
         start = _default_start(rod)
     if not isinstance(start, Clamped):
         raise ValueError(f"{owner}: start must be Clamped, got {type(start).__name__}")
-    end = end.condition()
+    end = type(end).condition(end)  # not `end.condition()`: equinox binds a method as a Module (~20 us)
     for name, cond in (("start", start), ("end", end)):
         if any(jnp.ndim(leaf) > 2 or (jnp.ndim(leaf) == 2 and jnp.shape(leaf) != (3, 3)) for leaf in jax.tree.leaves(cond)):
             raise ValueError(f"{owner}: {name} must be unbatched (jax.vmap over conditions)")
@@ -394,12 +394,12 @@ def solve_boundary_value(
     guess = fit_guess(guess, options.segments, start)
     sol = solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind)
     # One program made every field: one of them says whether they are concrete.
-    single = is_concrete(sol.residual) and jnp.ndim(sol.residual) == 0
-    if single:
-        sol = _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind)
-    if throw and single and not succeeded(sol.result):
+    if not (is_concrete(sol.residual) and jnp.ndim(sol.residual) == 0):
+        return raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _HINT) if throw else sol
+    sol = _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind)
+    if throw and not _status(sol)[0]:
         raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _hint(sol, rod, length, start, end, guess, guess_kind))
-    return raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _HINT) if throw else sol
+    return sol
 
 
 def fit_guess(guess, segments: int, start: Clamped):
@@ -494,6 +494,13 @@ def _solution_pieces(rod, length, sol: BoundaryValueSolution) -> int:
     return stability_pieces_for(rod, length, sol.force, jnp.concatenate([moments, sol.end_moment[None]]))
 
 
+def _status(sol: BoundaryValueSolution) -> tuple[bool, int]:
+    """(succeeded, instability index) of a concrete single solution, in one transfer from
+    the device (each read of a device value cost 5-13 us; an eager solve made half a dozen)."""
+    result, index = jax.device_get((sol.result, sol.instability_index))
+    return bool(succeeded(result)), int(index)
+
+
 def _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind) -> BoundaryValueSolution:
     """The eager defaults that make a solve land on the physical state: more stability
     pieces where the test does not resolve the wrench, and, from the default guess, when
@@ -506,7 +513,10 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
 
     def resolved(sol, options):
         pieces = options.stability_pieces
-        while succeeded(sol.result) and int(sol.instability_index) < 0 and not moment_loaded and 0 < pieces < MAX_STABILITY_PIECES:
+        while not moment_loaded and 0 < pieces < MAX_STABILITY_PIECES:
+            ok, index = _status(sol)
+            if not (ok and index < 0):
+                break
             pieces = min(max(2 * pieces, _solution_pieces(rod, length, sol)), MAX_STABILITY_PIECES)
             options = dataclasses.replace(options, stability_pieces=pieces)
             sol = restability(rod, length, end, sol, options)
@@ -516,7 +526,10 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
         return resolved(solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind), options)
 
     sol = resolved(sol, options)
-    acceptable = lambda s: bool(succeeded(s.result)) and int(s.instability_index) <= 0  # noqa: E731
+
+    def acceptable(trial) -> bool:
+        ok, index = _status(trial)
+        return ok and index <= 0
 
     def settled(trial):
         """`trial`, or where it converged to an unstable state, a solve pushed from it to
@@ -524,7 +537,7 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
         acceptable."""
         if acceptable(trial):
             return trial
-        if not succeeded(trial.result):
+        if not _status(trial)[0]:
             return None
         # In NumPy: JAX would compile each of these operations eagerly (~0.1 s).
         frame, push = np.asarray(start.frame), np.asarray(trial.unstable_direction)
@@ -558,7 +571,7 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
     for steps in FALLBACK_CONTINUATION:
         homotopy = dataclasses.replace(options, continuation=steps)
         trial = solved(None, homotopy)
-        if acceptable(trial) or (succeeded(trial.result) and not succeeded(sol.result)):
+        if acceptable(trial) or (_status(trial)[0] and not _status(sol)[0]):
             sol = trial
         if acceptable(sol):
             break

@@ -224,8 +224,15 @@ def rows_tweezer(r):
     return out
 
 
+def _program_sizes() -> dict:
+    """`bench_first_calls.py --sizes`: {label: {"commit": ..., "cases": {case: sizes}}}."""
+    path = RESULTS / "bench_program_sizes.json"
+    return json.loads(path.read_text())["labels"] if path.exists() else {}
+
+
 def rows_first_calls(r):
     out = []
+    sizes = _program_sizes()
     for case, by in r["results"].items():
         ours, warm, default = by["options"], by["warm"], by["xla-default"]
         where = ", one core" if r.get("one_core") else ""
@@ -237,7 +244,10 @@ def rows_first_calls(r):
                         f"later calls {1e3 * ours['later_wall_s']:.3g} ms vs {1e3 * default['later_wall_s']:.3g} ms; "
                         f"peak RSS {ours['peak_rss_gb']:.2f} vs {default['peak_rss_gb']:.2f} GB"
                         + (f"; JAX_DISABLE_MOST_OPTIMIZATIONS=1: first call {by['low-opt']['first_wall_s']:.2g} s, "
-                           f"later calls {1e3 * by['low-opt']['later_wall_s']:.3g} ms" if "low-opt" in by else "")))
+                           f"later calls {1e3 * by['low-opt']['later_wall_s']:.3g} ms" if "low-opt" in by else "")
+                        + "".join(f"; {label} ({entry['commit']}): {c['programs']} programs, {c['hlo_ops']} HLO instructions "
+                                  f"({c['hlo_ops_optimized']} after XLA's passes), the largest {c['largest']['hlo_ops']}"
+                                  for label, entry in sizes.items() if (c := entry["cases"].get(case)))))
     return out
 
 

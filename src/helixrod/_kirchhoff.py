@@ -106,6 +106,31 @@ def _ambient_field(s, y: RodState, rod) -> RodState:
     return tangent(y, *_body_velocity(s, y, rod))
 
 
+def _per_unit_length(field):
+    """`field(s, y, args)` of the arc length $s \\in [0, L]$ as the field of $\\sigma = s/L
+    \\in [0, 1]$, $dy/d\\sigma = L\\,f(L\\sigma, y)$, with args `(args, L)`.
+
+    Every integration runs over $\\sigma$ so that diffrax's end time is the constant 1, not the
+    traced length: `diffrax.diffeqsolve` computes its end time less 100 ULPs by 100 sequential
+    `prevbefore`s of it, ~2300 HLO instructions (~1600 after XLA's passes) that XLA folds into one constant only when the
+    end time is a constant, and otherwise compiles and runs in every program.  Measured by
+    `benchmarks/bench_first_calls.py --sizes` (instructions after XLA's passes): `solve_static`
+    4053 -> 2369, with 201 saved points 5047 -> 3365, its `jax.grad` 7217 -> 3737,
+    `solve_boundary_value` 15898 -> 14279.  The controller is scale-invariant, so the steps
+    are those over $s$ up to round-off (its first step's heuristic is not, which moves the
+    solution within the tolerance)."""
+
+    def scaled(sigma, y, args_and_length):
+        args, length = args_and_length
+        return jax.tree.map(lambda rate: length * rate, field(length * sigma, y, args))
+
+    return scaled
+
+
+_body_velocity_per_unit_length = _per_unit_length(_body_velocity)
+_ambient_field_per_unit_length = _per_unit_length(_ambient_field)
+
+
 def _wrench_jacobian(rod, wrench):
     """The $6\\times 6$ Jacobian of the wrench equations $(n', m') = (-u\\times n,\\
     -u\\times m - e_3\\times n)$, $u = u(m)$, at the local wrench `(6,)` = $(n, m)$."""
@@ -413,21 +438,29 @@ class _Flow(eqx.Module):
 
     def __call__(self, rod, y0: RodState, length, ts, rtol, atol):
         geometric = isinstance(self.solver, (CommutatorFreeRK4, MuntheKaasRK))
+        # Over sigma = s / length in [0, 1] (`_per_unit_length`).
+        sigma = None if ts is None else ts / length
         if self.steps is not None:
             controller = diffrax.ConstantStepSize()
-            dt0 = length / self.steps
+            dt0 = 1.0 / self.steps
         else:
-            step_ts = None if self.dense else ts
-            dtmax = _stability_step(rod, y0.n, y0.m) if geometric else None
+            step_ts = None if self.dense else sigma
+            dtmax = _stability_step(rod, y0.n, y0.m) / length if geometric else None
             controller = diffrax.PIDController(rtol=rtol, atol=atol, step_ts=step_ts, dtmax=dtmax)
             dt0 = None
-        term = BodyVelocityTerm(_body_velocity) if geometric else diffrax.ODETerm(_ambient_field)
+        term = BodyVelocityTerm(_body_velocity_per_unit_length) if geometric else diffrax.ODETerm(_ambient_field_per_unit_length)
         adjoint = diffrax.RecursiveCheckpointAdjoint() if self.adjoint is None else self.adjoint
-        s, ys, sol = diffeqsolve_saving(
-            term, self.solver, 0.0, length, dt0, y0, ts=ts, args=rod, stepsize_controller=controller,
-            max_steps=self.max_steps, adjoint=adjoint, throw=False,
+        _, ys, sol = diffeqsolve_saving(
+            term, self.solver, 0.0, _one_like(length), dt0, y0, ts=sigma, args=(rod, length),
+            stepsize_controller=controller, max_steps=self.max_steps, adjoint=adjoint, throw=False,
         )
+        s = jnp.reshape(length, (1,)) if ts is None else ts
         return s, ys, sol.result, sol.stats["num_accepted_steps"]
+
+
+def _one_like(length):
+    """The end of the unit interval, a constant (not traced) in `length`'s dtype."""
+    return np.ones((), dtype=jnp.result_type(length))
 
 
 @eqx.filter_custom_jvp
@@ -484,7 +517,7 @@ def _sensitivities(diff, rest, length, ts, rtol, atol, max_steps):
 
     # The directions ride on the last axis of S: under a caller's vmap that took a batch of
     # gradients 5.3-6.1 -> 4.7-4.9 ms per item (one core).
-    def field(s, state, q):
+    def rates(s, state, q):
         y, S = state
         rate = lambda y, q: _ambient_field(s, y, split(q)[0])  # noqa: E731
         return rate(y, q), jax.vmap(lambda Sj, e: jax.jvp(rate, (y, q), (Sj, e))[1], in_axes=(-1, 0), out_axes=-1)(S, basis)
@@ -492,7 +525,8 @@ def _sensitivities(diff, rest, length, ts, rtol, atol, max_steps):
     start = lambda q: split(q)[1]  # noqa: E731
     S0 = jax.vmap(lambda e: jax.jvp(start, (p,), (e,))[1], out_axes=-1)(basis)
     _, ys, sol = diffeqsolve_saving(
-        diffrax.ODETerm(field), diffrax.Dopri8(), 0.0, length, None, (start(p), S0), ts=ts, args=p,
+        diffrax.ODETerm(_per_unit_length(rates)), diffrax.Dopri8(), 0.0, _one_like(length), None, (start(p), S0),
+        ts=None if ts is None else ts / length, args=(p, length),
         stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol), max_steps=max_steps,
         adjoint=diffrax.ForwardMode(), throw=False,
     )

@@ -112,8 +112,9 @@ def _per_unit_length(field):
 
     Every integration runs over $\\sigma$ so that diffrax's end time is the constant 1, not the
     traced length: `diffrax.diffeqsolve` computes its end time less 100 ULPs by 100 sequential
-    `prevbefore`s of it, ~2300 HLO instructions (~1600 after XLA's passes) that XLA folds into one constant only when the
-    end time is a constant, and otherwise compiles and runs in every program.  Measured by
+    `prevbefore`s of it, ~2300 HLO instructions (~1600 after XLA's passes) that XLA folds into
+    one constant only when the end time is a constant, and otherwise compiles and runs in every
+    program.  Measured by
     `benchmarks/bench_first_calls.py --sizes` (instructions after XLA's passes): `solve_static`
     4053 -> 2369, with 201 saved points 5047 -> 3365, its `jax.grad` 7217 -> 3737,
     `solve_boundary_value` 15898 -> 14279.  The controller is scale-invariant, so the steps

@@ -1,5 +1,6 @@
 """helixrod's compiler options: passed to its own top-level programs, never to a caller's."""
 
+import gc
 import os
 import subprocess
 import sys
@@ -47,6 +48,36 @@ def test_no_options_is_the_plain_jit(monkeypatch):
     x = jnp.linspace(0.0, 1.0, 5)
     np.testing.assert_allclose(plain_jit(x), 2.0 * np.sin(np.asarray(x)), rtol=1e-15)
     np.testing.assert_allclose(plain_filter(x), np.cos(np.asarray(x)) + 1.0, rtol=1e-15)
+
+
+def test_a_top_level_call_traces_without_the_garbage_collector_and_restores_it():
+    # The collector's passes over every object of the process cost a first call's tracing a
+    # fifth of its time; it is paused for the call and left as the caller had it, also when
+    # the call raises.
+    seen = []
+
+    def traced(x):
+        seen.append(gc.isenabled())
+        if x.shape == (2,):
+            raise ValueError("bad shape")
+        return 2.0 * x
+
+    for program in (_compile.jit(traced), _compile.filter_jit(traced)):
+        seen.clear()
+        assert gc.isenabled()
+        np.testing.assert_array_equal(program(jnp.ones(3)), 2.0)
+        with pytest.raises(ValueError, match="bad shape"):
+            program(jnp.ones(2))
+        assert seen == [False, False] and gc.isenabled()
+        gc.disable()
+        try:
+            program(jnp.ones(4))
+            assert seen == [False, False, False] and not gc.isenabled()  # the caller's choice stands
+        finally:
+            gc.enable()
+        # Inside a caller's transformation the caller's trace runs as the caller set it.
+        np.testing.assert_array_equal(jax.jit(program)(jnp.ones(5)), 2.0)
+        assert seen[-1] is True and gc.isenabled()
 
 
 def test_run_once_programs_take_their_own_options(monkeypatch):

@@ -44,12 +44,24 @@ the forces of `helix_equilibria` at 10^5 points 19.4-21.4 -> 4.8-4.9 ms; a vmapp
 1.75-1.79 ms; `fit_stiffness` (60 helices) 5.7-6.7 -> 5.1-5.4 ms; one `solve_static` and
 `solve_boundary_value` unchanged within noise.  Like the loop threshold it is process-wide
 and left alone when ``XLA_FLAGS`` already names it.
+
+A top-level call of a program made here pauses Python's cyclic garbage collector while it
+runs (and restores it as the caller had it, also on an error).  A first call traces its
+program: hundreds of thousands of short-lived Python objects, whose allocation triggers the
+collector's full passes over every object of the process (JAX's, diffrax's, ...), and none of
+it is cyclic garbage worth collecting there.  Measured (one core, fresh processes
+alternating with the code before, empty caches): the collector took 0.23-0.25 s of
+`solve_boundary_value`'s first call (287 passes), whose tracing went 1.11-1.19 -> 0.88-1.01 s;
+the tweezer example's fit (`benchmarks/bench_first_calls.py`) 12.09-12.15 -> 11.32-11.51 s,
+its tracing 3.37-3.43 -> 2.45-2.65 s, peak memory 0.52 -> 0.53 GB.  A later call dispatches a
+compiled program and returns: pausing costs it two calls of ~0.1 us.
 """
 
 from __future__ import annotations
 
 import contextlib
 import functools
+import gc
 import inspect
 import os
 from importlib import metadata
@@ -194,12 +206,19 @@ def _with_options(plain, tuned, options, traced_once=None):
             return plain(*args, **kwargs)
         cpu = _compiles_for_cpu()
         fallback = tuned if options and cpu else plain
-        if traced_once is not None and cpu and _trace_cache.enabled():
-            name, static_argnames = traced_once
-            return _trace_cache.cached_call(
-                plain, fallback, name, static_argnames, options if fallback is tuned else {}, args, kwargs
-            )
-        return fallback(*args, **kwargs)
+        # The collector paused for the call (module docstring); left as the caller had it.
+        collecting = gc.isenabled()
+        gc.disable()
+        try:
+            if traced_once is not None and cpu and _trace_cache.enabled():
+                name, static_argnames = traced_once
+                return _trace_cache.cached_call(
+                    plain, fallback, name, static_argnames, options if fallback is tuned else {}, args, kwargs
+                )
+            return fallback(*args, **kwargs)
+        finally:
+            if collecting:
+                gc.enable()
 
     return call
 

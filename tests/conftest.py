@@ -1,4 +1,5 @@
 import collections
+import logging
 import os
 import tempfile
 
@@ -130,3 +131,25 @@ def exported_programs(tmp_path):
         _trace_cache._programs.clear()
         _trace_cache._refused.clear()
         _trace_cache.counts.update(saved)
+
+
+@pytest.fixture
+def compilations():
+    """The compilations of the test, as (thread name, message) of JAX's compile log (on in
+    every thread: `jax.log_compiles` as a context is the calling thread's only)."""
+    records = []
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            message = record.getMessage()
+            if message.startswith("Finished XLA compilation of jit("):
+                records.append((record.threadName, message.split("jit(", 1)[1].split(")", 1)[0]))
+
+    handler, logger = Keep(), logging.getLogger("jax")
+    logger.addHandler(handler)
+    jax.config.update("jax_log_compiles", True)
+    try:
+        yield records
+    finally:
+        jax.config.update("jax_log_compiles", False)
+        logger.removeHandler(handler)

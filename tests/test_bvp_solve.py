@@ -20,6 +20,7 @@ from helpers import (
 from scipy.integrate import solve_bvp
 
 import helixrod as hr
+from helixrod import _compile
 from helixrod._bvp import stack_ends
 from helixrod._bvp._options import with_settings
 
@@ -147,6 +148,25 @@ def test_unloaded_axial_ends_solve_to_the_unloaded_helix():
         np.testing.assert_allclose(sol.n0, 0.0, atol=1e-10)
         np.testing.assert_allclose(sol.m0, 0.0, atol=1e-10)
         np.testing.assert_allclose(sol.x, hr.helix_centreline(1.0, 0.3, sol.s), atol=1e-9)
+
+
+def test_a_first_call_compiles_its_programs_side_by_side_once(compilations, monkeypatch):
+    """An eager first call compiles the guess, the solve and its stability test each on a
+    thread of its own, from specs of the values they will be called with: the calls find
+    those compilations (a spec that missed would compile the program twice).  A signature
+    no other test uses, of all three: 12 pieces of the test, 4 saved points."""
+    monkeypatch.setattr(_compile, "cores", lambda: 2)  # as on a machine of several cores
+    rod, length = hr.Rod(1.0, 1.5, 0.8), 1.0
+    sol = hr.solve_boundary_value(
+        rod, length, end=hr.Loaded(force=(0.0, 0.0, -3.0)), saveat=jnp.linspace(0.0, length, 4), stability_pieces=12
+    )
+    ours = [(thread, name) for thread, name in compilations if name in ("as_warm_start", "solve", "_stability_where_solved")]
+    assert sorted(ours) == [(f"helixrod-compile-{name}", name) for name in ("_stability_where_solved", "as_warm_start", "solve")], ours
+    # Under 3 pN the straight cantilever (critical load pi^2/4) has buckled: the direct
+    # solve found the straight state, unstable, and the retries pushed from it (warm starts
+    # of its one piece: the same programs, compiled once) found the buckled one.
+    assert bool(sol.ok) and int(sol.instability_index) == 0 and sol.stability_pieces == 12
+    assert float(np.linalg.norm(np.asarray(sol.end_position)[:2])) > 0.3
 
 
 @pytest.mark.slow  # compiles the vmapped solve (~20 s on 2 busy cores); the single solves share `solve`

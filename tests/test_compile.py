@@ -214,3 +214,79 @@ def test_import_leaves_only_dots_to_library_fusions(setting):
     out = subprocess.run([sys.executable, "-c", _ELEMENTWISE_PROGRAM], env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == ("False" if setting == "1" else "True")
+
+
+def test_a_program_compiled_ahead_is_found_by_its_call(compilations, monkeypatch):
+    # Compiled on a thread of its own from the specs of its arguments (one of them a
+    # value still to be computed: a spec), then called with values: nothing compiles again,
+    # and a second program fed with the first's results finds its own compilation too.
+    monkeypatch.setattr(_compile, "cores", lambda: 2)
+    def scaled_sine(x, scale):
+        return {"y": jnp.sin(x) * scale, "total": jnp.sum(x)}
+
+    def shifted(y, total):
+        return y + total
+
+    first, second = _compile.jit(scaled_sine), _compile.jit(shifted)
+    x = jnp.linspace(0.0, 1.0, 7)
+    out = _compile.compile_ahead(first, jax.ShapeDtypeStruct(x.shape, x.dtype), 2.0)
+    assert jax.tree.structure(out) == jax.tree.structure({"y": 0, "total": 0})
+    assert (out["y"].shape, out["y"].dtype, out["total"].shape) == ((7,), x.dtype, ())
+    assert _compile.compile_ahead(first, x, 2.0) is None  # one compilation of a program at a time
+    assert _compile.compile_ahead(second, out["y"], out["total"]) is not None
+    result = first(x, 2.0)
+    total = second(result["y"], result["total"])
+    np.testing.assert_allclose(total, 2.0 * np.sin(np.asarray(x)) + np.sum(np.asarray(x)), rtol=1e-15)
+    ours = [(thread, name) for thread, name in compilations if name in ("scaled_sine", "shifted")]
+    assert sorted(ours) == [("helixrod-compile-scaled_sine", "scaled_sine"), ("helixrod-compile-shifted", "shifted")]
+
+
+def test_results_of_committed_arguments_are_specified_committed(compilations, monkeypatch):
+    # A program's results are committed to a device when an argument is (JAX's rule), and
+    # whether arguments are committed is part of a program's signature: the specs say so.
+    monkeypatch.setattr(_compile, "cores", lambda: 2)
+    def doubled(x):
+        return 2.0 * x
+
+    def plus_one(y):
+        return y + 1.0
+
+    first, second = _compile.jit(doubled), _compile.jit(plus_one)
+    x = jax.device_put(jnp.arange(3.0), jax.devices()[0])
+    out = _compile.compile_ahead(first, x)
+    assert out.sharding == x.sharding
+    _compile.compile_ahead(second, out)
+    np.testing.assert_array_equal(second(first(x)), 2.0 * np.arange(3.0) + 1.0)
+    assert sorted(name for thread, name in compilations if name in ("doubled", "plus_one")) == ["doubled", "plus_one"]
+    assert all(thread.startswith("helixrod-compile-") for thread, name in compilations if name in ("doubled", "plus_one"))
+
+
+def test_nothing_is_compiled_ahead_where_the_call_would_not_compile_it(monkeypatch):
+    monkeypatch.setattr(_compile, "cores", lambda: 2)
+
+    def failing(x):
+        if x.shape == (2,):
+            raise ValueError("bad shape")
+        return x
+
+    program = _compile.jit(failing)
+    # Tracing fails: nothing starts, and the call raises its own error.
+    assert _compile.compile_ahead(program, jax.ShapeDtypeStruct((2,), jnp.float32)) is None
+    with pytest.raises(ValueError, match="bad shape"):
+        program(jnp.ones(2, jnp.float32))
+    # Inside a caller's transformation the program is part of the caller's.
+    seen = []
+    jax.jit(lambda y: seen.append(_compile.compile_ahead(program, y)) or y)(jnp.ones(3))
+    assert seen == [None]
+    # equinox's filter_jit programs, and plain functions, have no ahead-of-call compilation.
+    assert _compile.compile_ahead(_compile.filter_jit(failing), jnp.ones(3)) is None
+    assert _compile.compile_ahead(failing, jnp.ones(3)) is None
+    # On one core nothing would compile beside the caller.
+    monkeypatch.setattr(_compile, "cores", lambda: 1)
+    assert _compile.compile_ahead(program, jnp.ones(3)) is None
+    assert program not in _compile._compiling
+
+
+def test_cores_are_those_the_process_may_run_on():
+    expected = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    assert _compile.cores() == expected >= 1

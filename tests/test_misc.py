@@ -2,6 +2,9 @@
 argument checks (raise for bad concrete values, pass traced values through), against
 numpy and closed forms."""
 
+import dataclasses
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -330,3 +333,23 @@ def test_host_and_device_inputs_give_the_same_solve():
                              frame0=jnp.eye(3), x0=jnp.zeros(3), outputs=("wrench", "frame", "centreline"))
     for a, b in ((host.n, device.n), (host.frame, device.frame), (host.x, device.x)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_replaced_is_dataclasses_replace_without_init():
+    class Pair(eqx.Module):
+        a: jax.Array
+        b: jax.Array
+        label: int = eqx.field(static=True)
+
+        def __check_init__(self):
+            calls.append(self.label)
+
+    calls = []
+    pair = Pair(jnp.arange(3.0), jnp.ones(2), 1)
+    new = _misc.replaced(pair, b=jnp.zeros(2), label=7)
+    expected = dataclasses.replace(pair, b=jnp.zeros(2), label=7)
+    assert calls == [1, 7]  # the Module's own checks ran for `pair` and `dataclasses.replace`, not for `replaced`
+    assert jax.tree.structure(new) == jax.tree.structure(expected) and new.label == 7
+    for u, v in zip(jax.tree.leaves(new), jax.tree.leaves(expected)):
+        np.testing.assert_array_equal(u, v)
+    assert pair.label == 1 and np.all(np.asarray(pair.b) == 1.0)  # the original is untouched

@@ -10,8 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from helixrod import _trace_cache
-from helixrod._compile import filter_jit, jit, split_arrays
+from helixrod import _compile, _trace_cache
+from helixrod._compile import compile_ahead, filter_jit, jit, split_arrays
 
 traces = []
 
@@ -90,6 +90,21 @@ def test_a_later_process_calls_the_exported_program_without_tracing(exported_pro
             np.testing.assert_array_equal(np.asarray(u), np.asarray(v))
 
 
+def test_a_program_compiled_ahead_is_exported_and_found_by_its_call(exported_programs, compilations, monkeypatch):
+    # Compiled ahead from specs, the program is exported as a call would export it; its
+    # results are committed (`_trace_cache.placement`), and the call compiles nothing.
+    monkeypatch.setattr(_compile, "cores", lambda: 2)
+    x, pair = jnp.arange(6.0), (jnp.asarray(2.0), jnp.asarray(3.0))
+    traces.clear()
+    out = compile_ahead(program, jax.ShapeDtypeStruct(x.shape, x.dtype), pair, power=5)
+    assert traces == [5] and len(list(exported_programs.glob("*.export"))) == 1
+    assert out["shape"].shape == (6,) and out["value"].sharding == _trace_cache.placement()
+    result = program(x, pair, power=5)
+    assert traces == [5]
+    np.testing.assert_allclose(result["value"], np.sum(np.arange(6.0) ** 5) + 6.0, rtol=1e-15)
+    assert [thread for thread, name in compilations if name == "program"] == ["helixrod-compile-program"]
+
+
 def test_a_new_signature_is_a_new_program(exported_programs):
     x, pair = jnp.arange(4.0), (jnp.asarray(2.0), jnp.asarray(3.0))
     program(x, pair, power=2)
@@ -162,14 +177,21 @@ def test_a_damaged_file_is_exported_again(exported_programs):
 
 SCRIPT = textwrap.dedent(
     """
-    import sys, json, jax, numpy as np
+    import sys, json, logging, jax, numpy as np
     jax.config.update("jax_enable_x64", True)
     import helixrod as hr
     from helixrod import _trace_cache
+    compiled = []
+    class Keep(logging.Handler):
+        def emit(self, record):
+            if record.getMessage().startswith("Finished XLA compilation of jit(solve)"):
+                compiled.append(record.threadName)
+    logging.getLogger("jax").addHandler(Keep())
+    jax.config.update("jax_log_compiles", True)
     hr.enable_compilation_cache(sys.argv[1])
     sol = hr.solve_boundary_value(hr.Rod(1.0, 1.5, 0.8), 1.0, end=hr.Loaded(force=(0.0, 0.0, -3.0)))
     print(json.dumps(dict(counts=_trace_cache.counts, force=np.asarray(sol.force).tolist(), index=int(sol.instability_index),
-                          x=np.asarray(sol.end_position).tolist(), ok=bool(sol.ok))))
+                          x=np.asarray(sol.end_position).tolist(), ok=bool(sol.ok), compiled=compiled)))
     """
 )
 
@@ -187,6 +209,10 @@ def test_solve_boundary_value_in_a_later_process(tmp_path):
         runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
     first, second = runs
     assert first["counts"]["exported"] >= 1 and first["counts"]["loaded"] == 0
+    # The first compiles the exported solve once, beside its other programs where there
+    # are cores for it (the persistent cache answers the second's, on its thread too).
+    thread = "helixrod-compile-solve" if _compile.cores() > 1 else "MainThread"
+    assert first["compiled"] == second["compiled"] == [thread]
     assert second["counts"]["loaded"] >= 1 and second["counts"]["exported"] == 0
     assert first["ok"] and second["ok"] and first["index"] == second["index"] == 0
     np.testing.assert_allclose(second["force"], first["force"], rtol=0, atol=1e-12)

@@ -8,6 +8,7 @@ never spoils a `vmap`-ped batch.
 
 from __future__ import annotations
 
+import copy
 import functools
 import math
 
@@ -47,6 +48,18 @@ def safe_sqrt(x: ArrayLike) -> Array:
     $x \\le 0$ (double `where`)."""
     positive = x > 0
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
+
+
+def replaced(module, **changes):
+    """`dataclasses.replace(module, **changes)` for an `equinox.Module` whose new field values
+    are of the kinds its fields hold (a program's results in place of others), without
+    running the Module's `__init__` again: a shallow copy with the fields set, as JAX's
+    unflattening makes Modules.  Measured on a `BoundaryValueSolution` (25 fields): 6 us
+    against 66 us."""
+    new = copy.copy(module)
+    for name, value in changes.items():
+        object.__setattr__(new, name, value)
+    return new
 
 
 def no_gradient(tree):

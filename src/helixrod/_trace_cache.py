@@ -158,8 +158,9 @@ def _static_text(statics: dict) -> str | None:
 
 
 def _leaf_signature(leaf) -> tuple | None:
-    """(shape, dtype, weak type) of an array leaf; None for anything else."""
-    if isinstance(leaf, jax.Array):
+    """(shape, dtype, weak type) of an array leaf (or of a `jax.ShapeDtypeStruct` standing
+    for one); None for anything else."""
+    if isinstance(leaf, (jax.Array, jax.ShapeDtypeStruct)):
         return (leaf.shape, leaf.dtype.name, leaf.weak_type)
     if isinstance(leaf, (np.ndarray, np.generic)):
         return (leaf.shape, leaf.dtype.name, False)
@@ -222,19 +223,31 @@ def cached_call(plain, fallback, name: str, static_argnames, compiler_options: d
     that splits the arguments, an `equinox.filter_jit` one; top-level call) through the
     exported program of its signature, compiled with `compiler_options`, when the cache
     holds one or can make one; else `fallback(*args, **kwargs)` (the same program)."""
+    found = program_for(plain, name, static_argnames, compiler_options, args, kwargs)
+    if found is None:
+        return fallback(*args, **kwargs)
+    (call, out_tree), leaves = found
+    return jax.tree.unflatten(out_tree, call(*leaves))
+
+
+def program_for(plain, name: str, static_argnames, compiler_options: dict, args, kwargs):
+    """The program a top-level call `plain(*args, **kwargs)` goes through (as `cached_call`)
+    and the call's array leaves: `((compiled call, output structure), leaves)`; None where
+    the call takes the plain path.  An array leaf may be a `jax.ShapeDtypeStruct`, for a
+    program compiled ahead of its call (`_compile.py`)."""
     try:
         bound = _parameters(plain).bind(*args, **kwargs)
     except (TypeError, ValueError):
-        return fallback(*args, **kwargs)
+        return None
     bound.apply_defaults()
     try:
         dynamic, statics = _split(dict(bound.arguments), static_argnames)
     except TypeError:  # an unhashable static leaf: the plain call says what it makes of it
-        return fallback(*args, **kwargs)
+        return None
     leaves, treedef = jax.tree.flatten(dynamic)
     avals = tuple(_leaf_signature(leaf) for leaf in leaves)
     if any(a is None for a in avals):
-        return fallback(*args, **kwargs)
+        return None
     try:  # this process's index of the signatures it has met (hashing the text costs more)
         seen = (name, treedef, avals, tuple(sorted(statics.items())), jax.config.jax_enable_x64)
         signature = _signatures.get(seen)
@@ -243,7 +256,7 @@ def cached_call(plain, fallback, name: str, static_argnames, compiler_options: d
     if signature is None:
         static_text = _static_text(statics)
         if static_text is None or not _known_nodes(treedef):
-            return fallback(*args, **kwargs)
+            return None
         text = "|".join([
             name, str(treedef), repr(avals), static_text, _environment_digest(),
             str(jax.config.jax_enable_x64), jax.default_backend(), repr(sorted(compiler_options.items())),
@@ -256,12 +269,9 @@ def cached_call(plain, fallback, name: str, static_argnames, compiler_options: d
     if program is None:
         if signature in _refused or (_directory / f"{signature}.refused").exists():
             _refused.add(signature)
-            return fallback(*args, **kwargs)
+            return None
         program = _load(signature, name, compiler_options) or _export(signature, name, plain, treedef, statics, leaves, compiler_options)
-    if program is None:
-        return fallback(*args, **kwargs)
-    call, out_tree = program
-    return jax.tree.unflatten(out_tree, call(*leaves))
+    return None if program is None else (program, leaves)
 
 
 def _load(signature: str, name: str, compiler_options: dict):
@@ -292,7 +302,7 @@ def _export(signature: str, name: str, plain, treedef, statics: dict, leaves, co
         out_trees.append(out_tree)
         return out_leaves
 
-    avals = [jax.typeof(leaf) for leaf in leaves]
+    avals = [leaf if isinstance(leaf, jax.ShapeDtypeStruct) else jax.typeof(leaf) for leaf in leaves]
     shapes = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=getattr(a, "weak_type", False)) for a in avals]
     try:
         exported = jax.export.export(jax.jit(flat))(*shapes)
@@ -321,8 +331,13 @@ def _compiled(exported, compiler_options: dict, name: str):
         return exported.call(*leaves)
 
     program.__name__ = program.__qualname__ = name.rsplit(".", 1)[-1]
-    device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
-    return jax.jit(program, in_shardings=device, compiler_options=compiler_options or None)
+    return jax.jit(program, in_shardings=placement(), compiler_options=compiler_options or None)
+
+
+def placement():
+    """Where an exported program runs, its arguments and results lie: the first device of
+    the default backend (its results are committed there)."""
+    return jax.sharding.SingleDeviceSharding(jax.devices()[0])
 
 
 def _write(path: Path, data: bytes) -> None:

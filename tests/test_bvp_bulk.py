@@ -109,3 +109,34 @@ def test_frozen_root_derivatives_are_the_implicit_functions_to_second_order():
         step = jnp.zeros(3).at[i].set(h)
         central = (first(x + step) - first(x - step)) / (2 * h)
         np.testing.assert_allclose(second[..., i], central, rtol=1e-5, atol=1e-9 * float(jnp.max(jnp.abs(second))))
+
+
+def test_force_and_moment_without_multipliers_is_the_five_unknown_solve():
+    """Under a known force and moment `bulk_helix_at` solves three equations in u (the
+    multipliers eliminated); with the pair traced it solves the five in (u, mu1, mu2).
+    Same helix, same multipliers and observables, and the same first and second
+    derivatives in the loads and a stiffness (`newton_derivatives`, as the tweezer model
+    differentiates it)."""
+    import jax
+    import jax.numpy as jnp
+
+    from helixrod._bvp._bulk import bulk_helix_at
+
+    index = np.array([OBSERVABLES.index("force"), OBSERVABLES.index("moment")])
+    length = 2 * TURN
+
+    def helix(x, index):
+        rod = hr.Rod(BVP_ROD.K1, x[2], BVP_ROD.K3, BVP_ROD.K13, BVP_ROD.K23, BVP_ROD.uhat)
+        values = jnp.stack([x[0], x[1], 0.0, 0.0])
+        trial = bulk_helix_at(rod, length, index, values, max_steps=32, light=True)
+        bulk = bulk_helix_at(rod, length, index, values, (trial.u, trial.mu1, trial.mu2), max_steps=0, newton_derivatives=True)
+        return jnp.concatenate([bulk.u, jnp.stack([bulk.mu1, bulk.mu2]), bulk.observables])
+
+    reduced = jax.jit(lambda x: helix(x, index))
+    general = jax.jit(helix)  # the pair traced: five unknowns
+    x = jnp.array([0.3 * float(BVP_ROD.K1) / TURN**2, 0.1 * float(BVP_ROD.K1) / TURN, 1.1 * float(BVP_ROD.K2)])
+    np.testing.assert_allclose(reduced(x), general(x, jnp.asarray(index)), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(reduced(x)[5:7], x[:2], rtol=1e-12)  # the loads it was given
+    for order in (jax.jacfwd, lambda f: jax.jacfwd(jax.jacfwd(f))):
+        expected = order(lambda x: general(x, jnp.asarray(index)))(x)
+        np.testing.assert_allclose(order(reduced)(x), expected, rtol=1e-8, atol=1e-10 * float(jnp.max(jnp.abs(expected))))

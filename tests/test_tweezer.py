@@ -365,3 +365,79 @@ def test_errors_in_variables_sigma_is_the_slopes_in_quadrature():
             variance += (slope_turns * turns_sigma) ** 2
         assert variance > 9.0 * (1 + 1e-3)  # the slopes matter here
         np.testing.assert_allclose(predicted["extension_sigma"][i], np.sqrt(variance), rtol=1e-7)
+
+
+def _mixed_data_with_control_sigmas(n_free):
+    """`n_free` free-swivel points and six turned points at 1 pN on two molecules, two of
+    them with a measured torque, with force and turns sigmas (errors in variables)."""
+    forces = np.concatenate([np.geomspace(0.3, 20.0, n_free), np.full(6, 1.0)])
+    turns = np.concatenate([np.full(n_free, np.nan), np.linspace(-20.0, 20.0, 6)])
+    torque = np.where(np.isnan(turns), 0.0, np.nan)
+    extension = np.where(
+        np.isnan(turns),
+        np.asarray(tw.tweezer_response(ROD, 8000, forces, torque=0.0).extension),
+        np.asarray(tw.tweezer_response(ROD, 8000, forces, turns=np.nan_to_num(turns)).extension),
+    ) + 3.0 * np.random.default_rng(3).normal(size=forces.size)
+    measured = np.full(forces.size, np.nan)
+    measured[[n_free + 1, n_free + 4]] = (-8.0, 8.0)
+    return dna.TweezerData.from_arrays(
+        forces, extension, extension_sigma=4.0, turns=turns, torque=torque, force_sigma=0.03 * forces,
+        turns_sigma=0.1, measured_torque=measured, measured_torque_sigma=2.0,
+        molecule=[0] * n_free + [0, 1] * 3, n_bp=[8000, 8000],
+    )
+
+
+@pytest.mark.heavy
+def test_errors_in_variables_jacobian_in_one_forward_pass_is_the_nested_one():
+    """The tweezer model's Jacobian takes the slopes of errors in variables as columns of its
+    own forward pass; differentiating its residuals, whose slopes are a forward pass of
+    their own, gives the same Jacobian, residuals and sigmas (force and turns sigmas, free
+    and turned points, measured torques)."""
+    from helixrod._fit import forward_model
+    from helixrod._fit._models import AbstractForwardModel
+    from helixrod._fit._parameters import Parameterisation
+
+    model = forward_model(_mixed_data_with_control_sigmas(5), fit_offsets=True)
+    assert model.errors_in_variables and model.control_kind == "mixed"
+    fixed = {"K1": float(ROD.K1), "K13": 0.0, **{f"uhat{i + 1}": float(ROD.uhat[i]) for i in range(3)}}
+    extra = {"persistence_length": 48.0, "plectoneme_twist_persistence": 24.0, "offset_0": 1.0, "offset_1": -1.0}
+    param = Parameterisation(fixed, float(ROD.K2), 1.0, model.parameters, extra)
+    q = jnp.array([float(ROD.K2), float(ROD.K3), float(ROD.K23), 48.0, 24.0, 1.0, -1.0])
+    J, (r, predicted) = jax.jit(lambda q: model.jacobian_and_predictions(q, param))(q)
+    J0, (r0, predicted0) = jax.jit(lambda q: AbstractForwardModel.jacobian_and_predictions(model, q, param))(q)
+    assert J.shape == (11 + 2, 7)
+    np.testing.assert_allclose(r, r0, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(J, J0, rtol=1e-10, atol=1e-12 * float(jnp.max(jnp.abs(J0))))
+    for name in ("extension_sigma", "residual_sigma", "extension", "torque"):
+        np.testing.assert_allclose(predicted[name], predicted0[name], rtol=1e-12, err_msg=name)
+    # The sigmas moved: the slopes weigh in (force sigmas everywhere, turns sigmas on turned points).
+    assert np.all(np.asarray(predicted["extension_sigma"]) > 4.0)
+
+
+@pytest.mark.parametrize("exported", [False, True], ids=["plain", "trace cache"])
+def test_a_first_tweezer_fit_compiles_its_programs_side_by_side_once(exported, compilations, monkeypatch, request):
+    """A stepwise fit's first call of its signature compiles the model's program and the
+    solver's start and step programs each on a thread of its own, from the specs of the
+    values they will be called with: the calls find those compilations (a spec that missed,
+    e.g. placed otherwise, would compile the program twice).  Plain programs, and the
+    trace cache's exported ones (whose results are committed to a device).  Free-swivel
+    curves of their own sizes (no other test fits 9 or 10 points), force sigmas: errors in
+    variables."""
+    from helixrod import _compile
+
+    if exported:
+        request.getfixturevalue("exported_programs")
+    monkeypatch.setattr(_compile, "cores", lambda: 2)  # as on a machine of several cores
+    n = 10 if exported else 9
+    forces = np.geomspace(0.3, 20.0, n)
+    extension = np.asarray(tw.tweezer_response(ROD, 8000, forces, torque=0.0, persistence_length=48.0).extension)
+    data = dna.TweezerData.from_arrays(
+        forces, extension + 2.0 * np.random.default_rng(4).normal(size=n), extension_sigma=2.0, torque=0.0,
+        force_sigma=0.02 * forces, n_bp=8000,
+    )
+    fix = {"K1": float(ROD.K1), "K13": 0.0, "K23": float(ROD.K23), "K3": float(ROD.K3)}
+    fit = hr.fit_stiffness(data, uhat=ROD.uhat, init=ROD, fix=fix)
+    names = ("_jacobian_and_predictions_of", "_start", "_step")
+    ours = sorted((thread, name) for thread, name in compilations if name in names)
+    assert ours == [(f"helixrod-compile-{name}", name) for name in names], ours
+    assert fit.ok and abs(float(fit.params["persistence_length"]) - 48.0) < 3 * float(fit.stderr["persistence_length"])

@@ -67,7 +67,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._compile import filter_jit
-from ._bvp import AXIAL_OBSERVABLES, bulk_helix_at
+from ._bvp import helix_under_wrench
 from ._dna import ROOM_TEMPERATURE, helix_from_bdna
 from ._dna import kT as thermal_energy
 from ._misc import float_dtype, inverse_small, is_concrete, safe_sqrt
@@ -83,11 +83,10 @@ PLECTONEME_TWIST_PERSISTENCE = 24.0
 #: Largest Moroz-Nelson correction c accepted where a torque acts (an expansion in c).
 MAX_TWIST_CORRECTION = 0.5
 
-_FORCE_MOMENT = np.array([AXIAL_OBSERVABLES.index("force"), AXIAL_OBSERVABLES.index("moment")])
 _BISECTIONS = 64
 _CHORD_STEPS = 6
 _TRIAL_NEWTON_STEPS = 16
-_NEWTON_STEP_TOLERANCE = 1e-10  # in the scaled unknowns of bulk_helix_at; two more steps follow
+_NEWTON_STEP_TOLERANCE = 1e-10  # in the scaled unknowns of helix_under_wrench; two more steps follow
 # Stands for an infinite buckling torque or rotation inside the computation (finite: see there).
 NO_BUCKLING = 1e100
 
@@ -227,25 +226,38 @@ def filament_and_rise(rod, length_per_bp=None) -> tuple[Array, Array]:
 
 
 def _bulk(rod, ell, force, torque, guess=None):
-    """The rod's helix under (force, torque) and its Gibbs free energy per base pair.
+    """The twist $u$ of the rod's helix under (force, torque) and its `RESULTS` code
+    (`helix_under_wrench`; its extension and rotation per base pair: `_extension_and_rotation`,
+    its Gibbs free energy: `_gibbs`).
 
-    A plain Newton iteration (no derivatives) from `guess` (`(u, mu1, mu2)`, default the
-    unloaded helix) goes first, stopped once its steps are at round-off; where it does not
-    converge the point is flagged and the differentiated part runs at zero load, whose root
-    (the unloaded helix) is known.  Derivatives are those of the implicit function theorem
-    at the frozen root (`newton_derivatives`), to any order -- the twist stiffness is itself
-    a derivative, differentiated again by a fit -- with dense solves that never raise when
-    a least-squares solver probes with a non-finite tangent."""
-    values = jnp.stack([force, torque, 0.0 * force, 0.0 * force])
-    trial = bulk_helix_at(
-        rod, ell, _FORCE_MOMENT, values, guess, max_steps=_TRIAL_NEWTON_STEPS, light=True, step_tolerance=_NEWTON_STEP_TOLERANCE
+    A plain Newton iteration (no derivatives) from the twist `guess` (default the unloaded
+    helix) goes first, stopped once its steps are at round-off; where it does not converge
+    the point is flagged and the differentiated part runs at zero load, whose root (the
+    unloaded helix) is known.  Derivatives are those of the implicit function theorem at
+    the frozen root (`newton_derivatives`), to any order -- the twist stiffness is itself a
+    derivative, differentiated again by a fit -- with dense solves that never raise when a
+    least-squares solver probes with a non-finite tangent."""
+    trial, trial_result = helix_under_wrench(
+        rod, ell, force, torque, guess, max_steps=_TRIAL_NEWTON_STEPS, light=True, step_tolerance=_NEWTON_STEP_TOLERANCE
     )
-    good = trial.ok & jnp.all(jnp.isfinite(trial.u))
-    root = (jnp.where(good, trial.u, jnp.asarray(rod.uhat)), jnp.where(good, trial.mu1, 0.0), jnp.where(good, trial.mu2, 0.0))
-    bulk = bulk_helix_at(rod, ell, _FORCE_MOMENT, jnp.where(good, values, 0.0), root, max_steps=0, newton_derivatives=True)
-    gibbs = ell * (rod.energy(bulk.u) - force * bulk.extension / ell - torque * bulk.rotation / ell)
-    result = RESULTS.where(good, bulk.result, RESULTS.residual_above_tolerance)
-    return eqx.tree_at(lambda b: b.result, bulk, result), gibbs
+    good = (trial_result == RESULTS.successful) & jnp.all(jnp.isfinite(trial))
+    root = jnp.where(good, trial, jnp.asarray(rod.uhat))
+    u, result = helix_under_wrench(
+        rod, ell, jnp.where(good, force, 0.0), jnp.where(good, torque, 0.0), root, max_steps=0, newton_derivatives=True
+    )
+    return u, RESULTS.where(good, result, RESULTS.residual_above_tolerance)
+
+
+def _extension_and_rotation(ell, u):
+    """The extension $\\ell u_3/|u|$ and rotation $\\ell|u|$ per base pair of a helix of twist `u`."""
+    norm = jnp.linalg.norm(u)
+    return ell * u[2] / norm, ell * norm
+
+
+def _gibbs(rod, ell, u, force, torque):
+    """The Gibbs free energy per base pair of the rod's helix of twist `u` under (force, torque)."""
+    extension, rotation = _extension_and_rotation(ell, u)
+    return ell * rod.energy(u) - force * extension - torque * rotation
 
 
 def response_point(rod, ell, rise, force, control, torque_controlled, persistence_length, plectoneme_twist, kT):
@@ -271,11 +283,14 @@ def response_point(rod, ell, rise, force, control, torque_controlled, persistenc
 
     # The rod at zero torque, and its torsional compliance there (one tangent).
     def rotation_at(torque):
-        bulk, gibbs = _bulk(rod, ell, F, torque)
-        return bulk.rotation, (gibbs, bulk.result, bulk.extension, (bulk.u, bulk.mu1, bulk.mu2))
+        u, result = _bulk(rod, ell, F, torque)
+        return _extension_and_rotation(ell, u)[1], (u, result)
 
     zero = jnp.zeros((), dtype)
-    rotation0, compliance, (gibbs0, result0, extension0, root0) = jax.jvp(rotation_at, (zero,), (jnp.ones_like(zero),), has_aux=True)
+    rotation0, compliance, (root0, result0) = jax.jvp(rotation_at, (zero,), (jnp.ones_like(zero),), has_aux=True)
+    # Outside the tangent in the torque (which only the compliance needs).
+    extension0 = _extension_and_rotation(ell, root0)[0]
+    gibbs0 = _gibbs(rod, ell, root0, F, zero)
     C0 = rise / compliance
 
     # Twist fluctuations (Moroz-Nelson) as a series compliance t(F) and its force derivative.
@@ -318,21 +333,22 @@ def response_point(rod, ell, rise, force, control, torque_controlled, persistenc
     held = jnp.where(beyond_plateau, plateau, control)
 
     def extended_at(torque, guess):
-        bulk, _ = _bulk(rod, ell, F, torque, guess)
-        return bulk, bulk.rotation - rotation0 + rise * torque * series
+        u, result = _bulk(rod, ell, F, torque, guess)
+        extension, rotation = _extension_and_rotation(ell, u)
+        return u, extension, rotation - rotation0 + rise * torque * series, result
 
     if free_swivel:
         torque_extended, intrinsic, rotation_extended, result_extended = zero, extension0, zero, result0
     elif torque_controlled is True:
-        bulk, rotation_extended = extended_at(held, root0)
-        torque_extended, intrinsic, result_extended = held, bulk.extension, bulk.result
+        _, intrinsic, rotation_extended, result_extended = extended_at(held, root0)
+        torque_extended = held
     else:
 
         def chord(_, state):
             torque, guess = state[0], state[-1]
-            bulk, rotation = extended_at(torque, guess)
+            u, extension, rotation, result = extended_at(torque, guess)
             step = torque + (target - rotation) * C_eff / rise
-            return jnp.where(controlled, held, step), torque, bulk.extension, rotation, bulk.result, (bulk.u, bulk.mu1, bulk.mu2)
+            return jnp.where(controlled, held, step), torque, extension, rotation, result, u
 
         start = jnp.where(controlled, held, target * C_eff / rise)
         initial = (start, start, zero, zero, result0, root0)
@@ -502,8 +518,7 @@ def _moduli(rod, ell, rise, force, A, P, kT):
 
     def at(F):
         def observables(wrench):
-            bulk, _ = _bulk(rod, ell, wrench[0], wrench[1])
-            values = jnp.stack([bulk.extension, bulk.rotation])
+            values = jnp.stack(_extension_and_rotation(ell, _bulk(rod, ell, wrench[0], wrench[1])[0]))
             return values, values
 
         wrench = jnp.stack([F, jnp.zeros((), F.dtype)])

@@ -7,7 +7,7 @@ from ._atlas import (
     stability_atlas as stability_atlas,
 )
 from ._branch import Branch as Branch, SpecialPoint as SpecialPoint, follow_branch as follow_branch
-from ._bulk import BulkHelix as BulkHelix, bulk_helix as bulk_helix, bulk_helix_at as bulk_helix_at
+from ._bulk import BulkHelix as BulkHelix, bulk_helix as bulk_helix, bulk_helix_at as bulk_helix_at, helix_under_wrench as helix_under_wrench
 from ._ends import (
     AXIAL_CONTROLS as AXIAL_CONTROLS,
     AXIAL_OBSERVABLES as AXIAL_OBSERVABLES,

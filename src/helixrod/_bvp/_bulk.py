@@ -8,21 +8,28 @@ derivatives) from a guess on the branch wanted -- by default the unloaded helix 
 $\\mu = 0$), so the branch is the one continuously connected to the unloaded spring.  On a
 uniform helix $F = \\mu_2|u|$, $M = \\mu_1|u| + \\mu_2 u_3/|u|$, $h = L u_3/|u|$ and $\\Theta = L|u|$.
 This is the prediction against which finite rods are compared, and the default guess of
-`solve_boundary_value`.
+`solve_boundary_value`.  Under a given force and moment the multipliers are explicit,
+$\mu_2 = F/|u|$ and $\mu_1 = (M - F u_3/|u|^2)/|u|$, and the balance is three equations in
+$u$ alone (`_wrench_residual`).
 """
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
-from .._misc import finite_scalar, float_dtype, newton_iterations, no_gradient, solve_small, solve_small_linear
+from .._misc import finite_scalar, float_dtype, is_concrete, newton_iterations, no_gradient, solve_small, solve_small_linear
 from .._rod import check_one_rod
 from .._status import RESULTS, promote, raise_if_failed
 from ._ends import AXIAL_OBSERVABLES, axial_controls
+
+_FORCE, _MOMENT = AXIAL_OBSERVABLES.index("force"), AXIAL_OBSERVABLES.index("moment")
 
 
 def stiffness_scale(rod) -> Array:
@@ -67,6 +74,20 @@ class BulkHelix(eqx.Module):
         return jnp.stack([self.force, self.moment, self.extension, self.rotation], -1)
 
 
+def _wrench_residual(x, args):
+    """The balance $K(u - \\hat u) - \\mu_1 u - \\mu_2 e_3$ of the uniform helix of twist
+    $u = x/\\ell$ under axial force $F$ and moment $M$, the multipliers eliminated (module
+    docstring), in units of the stiffness scale per $\\ell$."""
+    rod, force, moment, scales = args
+    k_scale, ell = scales[0], scales[1]
+    u = x / ell
+    squared = jnp.sum(u * u) + 1e-300
+    norm = jnp.sqrt(squared)
+    mu1, mu2 = (moment - force * u[2] / squared) / norm, force / norm
+    e3 = jnp.array([0.0, 0.0, 1.0], u.dtype)
+    return (rod.moment(u) - mu1 * u - mu2 * e3) / (k_scale / ell)
+
+
 def _bulk_residual(z, args):
     rod, index, values, length, scales = args
     k_scale, ell = scales[0], scales[1]
@@ -81,21 +102,21 @@ def _bulk_residual(z, args):
     return jnp.concatenate([balance, controls])
 
 
-@jax.custom_jvp
-def _implicit_root(z, args):
-    """The root `z` of `_bulk_residual(z, args) = 0` (given, converged), differentiated in
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _implicit_root(residual, z, args):
+    """The root `z` of `residual(z, args) = 0` (given, converged), differentiated in
     `args` by the implicit function theorem, to any order: the rule evaluates the residual
     at this function's own output, so differentiating the rule again moves the root too."""
     return z
 
 
 @_implicit_root.defjvp
-def _implicit_root_jvp(primals, tangents):
+def _implicit_root_jvp(residual, primals, tangents):
     z, args = primals
     _, dargs = tangents
-    root = _implicit_root(z, args)
-    jacobian = jax.jacfwd(_bulk_residual)(root, args)
-    _, moved = jax.jvp(lambda a: _bulk_residual(root, a), (args,), (dargs,))
+    root = _implicit_root(residual, z, args)
+    jacobian = jax.jacfwd(residual)(root, args)
+    _, moved = jax.jvp(lambda a: residual(root, a), (args,), (dargs,))
     return root, -solve_small_linear(jacobian, moved)
 
 
@@ -125,36 +146,37 @@ def bulk_helix_at(
     derivatives: on one core the bundled tweezer fit's model program traced in 4.1 s
     instead of 2.9 s and compiled in 6.0 s instead of 5.4 s, its later calls 0.49 s
     instead of 0.33 s.)
-    Default: optimistix Newton with implicit derivatives."""
+    Default: optimistix Newton with implicit derivatives.
+
+    With `index` known to be (force, moment) -- not traced -- the solve is
+    `helix_under_wrench`'s, in $u$ alone; the multipliers follow from $u$ and the loads.
+    (Measured on the bundled tweezer fit, whose model solves it per point and
+    differentiates it to third order, against the five unknowns: its program's tracing
+    2.8 -> 2.55 s, XLA compilation 5.7 -> 4.5 s, a later call of it 18 -> 7 ms, the fit's
+    first call 10.7-11.3 -> 8.6-8.8 s, one process each on 2 cores; the same fit to
+    1e-14.)"""
     dtype = float_dtype()
     length = jnp.asarray(length, dtype)
-    k_scale = stiffness_scale(rod)
-    ell = length_scale(rod, length)
     if guess is None:
         guess = (jnp.asarray(rod.uhat, dtype), jnp.zeros((), dtype), jnp.zeros((), dtype))
-    u0, m10, m20 = (jax.lax.stop_gradient(jnp.asarray(g, dtype)) for g in guess)
-    z0 = jnp.concatenate([u0 * ell, jnp.stack([m10 / k_scale, m20 * ell / k_scale])])
-    args = (rod, jnp.asarray(index), jnp.asarray(values, dtype), length, jnp.stack([k_scale, ell]))
-    if light or newton_derivatives:
-        frozen = no_gradient(args)
-        z = newton_iterations(lambda z: _bulk_residual(z, frozen), z0, max_steps, tolerance=step_tolerance)
-        result = RESULTS.successful
-        if newton_derivatives:
-            def newton_step(_, z):
-                return z - solve_small(jax.jacfwd(_bulk_residual)(z, frozen), _bulk_residual(z, frozen))
-
-            z = _implicit_root(jax.lax.fori_loop(0, 2, newton_step, z), args)
+    values = jnp.asarray(values, dtype)
+    modes = dict(max_steps=max_steps, light=light, newton_derivatives=newton_derivatives, step_tolerance=step_tolerance)
+    if _is_force_and_moment(index):
+        u, result = helix_under_wrench(rod, length, values[0], values[1], guess[0], **modes)
+        norm = jnp.linalg.norm(u)
+        safe = jnp.where(norm > 0, norm, 1.0)
+        mu1, mu2 = (values[1] - values[0] * u[2] / safe**2) / safe, values[0] / safe
     else:
-        sol = optx.root_find(
-            _bulk_residual, optx.Newton(rtol=1e-12, atol=1e-12), z0, args, max_steps=max_steps, throw=False
-        )
-        z = sol.value
-        result = promote(sol.result)
-    u, mu1, mu2 = z[:3] / ell, z[3] * k_scale, z[4] * k_scale / ell
-    norm = jnp.linalg.norm(u)
-    residual = jnp.max(jnp.abs(_bulk_residual(z, args)))
-    helix = (residual < 1e-8) & (norm > 0) & jnp.all(jnp.isfinite(z))
-    safe = jnp.where(norm > 0, norm, 1.0)
+        k_scale = stiffness_scale(rod)
+        ell = length_scale(rod, length)
+        u0, m10, m20 = (jax.lax.stop_gradient(jnp.asarray(g, dtype)) for g in guess)
+        z0 = jnp.concatenate([u0 * ell, jnp.stack([m10 / k_scale, m20 * ell / k_scale])])
+        args = (rod, jnp.asarray(index), values, length, jnp.stack([k_scale, ell]))
+        z, result = _root(_bulk_residual, z0, args, **modes)
+        result = _checked(result, _bulk_residual, z, args, z[:3])
+        u, mu1, mu2 = z[:3] / ell, z[3] * k_scale, z[4] * k_scale / ell
+        norm = jnp.linalg.norm(u)
+        safe = jnp.where(norm > 0, norm, 1.0)
     return BulkHelix(
         u=u,
         mu1=mu1,
@@ -163,8 +185,69 @@ def bulk_helix_at(
         moment=mu1 * norm + mu2 * u[2] / safe,
         extension=length * u[2] / safe,
         rotation=length * norm,
-        result=RESULTS.where(helix | (result != RESULTS.successful), result, RESULTS.residual_above_tolerance),
+        result=result,
     )
+
+
+def helix_under_wrench(
+    rod,
+    length,
+    force,
+    moment,
+    guess=None,
+    *,
+    max_steps: int = 64,
+    light: bool = False,
+    newton_derivatives: bool = False,
+    step_tolerance: float | None = None,
+) -> tuple[Float[Array, "3"], RESULTS]:
+    """The twist $u$ of the uniform helix of a piece of length `length` under axial `force`
+    and `moment` (`bulk_helix_at` of that pair: three equations in $u$, the multipliers
+    eliminated), from the twist `guess` (default $\\hat u$), and its `RESULTS` code;
+    the modes as `bulk_helix_at`'s.  Only $u$ carries derivatives: a caller that needs
+    little else (the tweezer model, differentiated to third order) traces nothing more."""
+    dtype = float_dtype()
+    k_scale = stiffness_scale(rod)
+    ell = length_scale(rod, jnp.asarray(length, dtype))
+    u0 = jax.lax.stop_gradient(jnp.asarray(rod.uhat if guess is None else guess, dtype))
+    args = (rod, jnp.asarray(force, dtype), jnp.asarray(moment, dtype), jnp.stack([k_scale, ell]))
+    x, result = _root(
+        _wrench_residual, u0 * ell, args,
+        max_steps=max_steps, light=light, newton_derivatives=newton_derivatives, step_tolerance=step_tolerance,
+    )
+    return x / ell, _checked(result, _wrench_residual, x, args, x)
+
+
+def _checked(result, residual, z, args, x):
+    """`result`, or `residual_above_tolerance` where a successful solve stopped off a helix
+    with $|u| > 0$ (twist `x` scaled).  A check, not a prediction: evaluated without
+    derivatives (under a fit's nested forward modes every derivative of the residual would
+    be traced and thrown away)."""
+    z, x = jax.lax.stop_gradient((z, x))
+    imbalance = jnp.max(jnp.abs(residual(z, no_gradient(args))))
+    helix = (imbalance < 1e-8) & (jnp.sum(x * x) > 0) & jnp.all(jnp.isfinite(z))
+    return RESULTS.where(helix | (result != RESULTS.successful), result, RESULTS.residual_above_tolerance)
+
+
+def _is_force_and_moment(index) -> bool:
+    """Whether the controls `index` are known (not traced) to be the force and the moment."""
+    return is_concrete(index) and np.asarray(index).tolist() == [_FORCE, _MOMENT]
+
+
+def _root(residual, z0, args, *, max_steps, light, newton_derivatives, step_tolerance):
+    """The root of `residual(z, args)` from `z0` and a `RESULTS` code, as `bulk_helix_at`'s
+    modes solve it."""
+    if light or newton_derivatives:
+        frozen = no_gradient(args)
+        z = newton_iterations(lambda z: residual(z, frozen), z0, max_steps, tolerance=step_tolerance)
+        if newton_derivatives:
+            def newton_step(_, z):
+                return z - solve_small(jax.jacfwd(residual)(z, frozen), residual(z, frozen))
+
+            z = _implicit_root(residual, jax.lax.fori_loop(0, 2, newton_step, z), args)
+        return z, RESULTS.successful
+    sol = optx.root_find(residual, optx.Newton(rtol=1e-12, atol=1e-12), z0, args, max_steps=max_steps, throw=False)
+    return sol.value, promote(sol.result)
 
 
 def bulk_helix(

@@ -42,7 +42,7 @@ from .._bvp import AXIAL_CONTROLS, AXIAL_OBSERVABLES, BoundaryValueOptions, Clam
 from .._bvp import axial_response, solve_boundary_value
 from .._compile import jit
 from .._equilibria import helix_equilibria
-from .._misc import random_integers, random_normal, random_split
+from .._misc import jacobian_forward, random_integers, random_normal, random_split
 from ._finite_data import EndResponseData, ShapeData
 from ._helix_data import HelixData, measured
 from ._parameters import ModelParameter
@@ -78,6 +78,19 @@ class AbstractForwardModel(eqx.Module):
         zero, so batches of models (bootstrap replicates) keep one shape; the fit leaves
         it out of its residuals, degrees of freedom and error analysis."""
         return None
+
+    def jacobian_and_predictions(self, q: Array, param) -> tuple[Array, tuple[Array, dict[str, Array]]]:
+        """`(J, (r, predicted))`: the Jacobian of the residuals in the free physical values
+        `q` of the parameterisation `param`, with any moving sigmas (`moving_sigmas`) held
+        fixed, and the residuals and predictions there.  By default forward mode through
+        `residuals` (`jacobian_forward`); a model whose sigmas are derivatives of its own
+        predictions may take them in the same forward pass."""
+
+        def residuals(qq):
+            r, predicted = self.residuals(param.rod(qq), param.extra_vector(qq))
+            return r, (r, predicted)
+
+        return jacobian_forward(residuals, q, has_aux=True, through_loops=self.forward_mode_only)
 
     def moving_sigmas(self, predicted: dict[str, Array]) -> Array | None:
         """The sigmas `(m,)` that divide the residuals, from `residuals`' predictions, where

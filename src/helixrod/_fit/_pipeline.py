@@ -22,8 +22,8 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
-from .._compile import filter_jit, jit, split_arrays
-from .._misc import is_concrete, jacobian_forward, write_atomically
+from .._compile import compile_ahead, filter_jit, jit, split_arrays
+from .._misc import is_concrete, write_atomically
 from .._progress import ProgressArgument, batch_size, check_progress, padded_batch, progress_bar, scan_in_batches
 from .._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
 from .._status import RESULTS, message, promote, raise_if_failed, result_from_name, result_name, succeeded
@@ -31,7 +31,7 @@ from ._models import AbstractForwardModel, forward_model
 from ._parameters import Parameterisation, extra_start, resolve_fixed, start_vector
 from ._report import ErrorAnalysis, Identifiability, error_analysis
 from ._solvers import SOLVERS, final_residuals, make_solver, with_materialised_jacobian
-from ._stepwise import HELD_WEIGHTS_ROUNDS, steppable, stepwise_least_squares
+from ._stepwise import HELD_WEIGHTS_ROUNDS, compile_steps_ahead, steppable, stepwise_least_squares
 from ._symmetry import canonical, closest_in_orbit, symmetries
 
 BATCHING = ("map", "vmap")
@@ -374,6 +374,7 @@ def _stepwise_multistart(z0s, model, param, solver, max_steps: int, report):
     the one compiled copy of the model (the start scan and the error analysis use it too)."""
 
     arrays, static = split_arrays((model, param))
+    _compile_side_by_side(static, arrays, np.asarray(z0s[0]), model, param, solver)
 
     def jacobian_at(q):
         J, (r, predicted) = _split_jacobian_and_predictions(static, q, arrays)
@@ -390,6 +391,27 @@ def _stepwise_multistart(z0s, model, param, solver, max_steps: int, report):
     # On the host: `_best_start` reads them there (a stack of device arrays is a small
     # program of its own, a compilation or a cache lookup on a process's first fit).
     return jax.tree.map(lambda *a: np.stack([np.asarray(x) for x in a]), *solved)
+
+
+#: The fits whose programs `_compile_side_by_side` has started compiling.
+_compiled_side_by_side: set = set()
+
+
+def _compile_side_by_side(static, arrays, z0, model, param, solver) -> None:
+    """At the first stepwise fit of its kind: start compiling the model's program
+    (`_split_jacobian_and_predictions`) and the solver's step programs, each on a thread of
+    its own (`compile_ahead`, the steps from the output structure of the model's program),
+    so that the steps compile while the model does."""
+    key = (static, tuple((a.shape, a.dtype) for a in jax.tree.leaves(arrays)), z0.shape, z0.dtype)
+    if key in _compiled_side_by_side:
+        return
+    z = jax.ShapeDtypeStruct(z0.shape, z0.dtype)
+    specs = compile_ahead(_split_jacobian_and_predictions, static, jax.eval_shape(param.physical, z), arrays)
+    if specs is None:  # nothing compiles beside the call (traced, one core): try again next time
+        return
+    _compiled_side_by_side.add(key)
+    J, (r, predicted) = specs
+    compile_steps_ahead(solver, param.physical, z, r, J, model.moving_sigmas(predicted))
 
 
 @filter_jit
@@ -412,12 +434,7 @@ def jacobian_and_predictions(q, model: AbstractForwardModel, param: Parameterisa
 
 def _jacobian_and_predictions_of(static, q, arrays):
     model, param = static.combine(arrays)
-
-    def residuals(qq):
-        r, predicted = evaluate(qq, model, param)
-        return r, (r, predicted)
-
-    return jacobian_forward(residuals, q, has_aux=True, through_loops=model.forward_mode_only)
+    return model.jacobian_and_predictions(q, param)
 
 
 #: `jacobian_and_predictions` with `(model, param)` given as `split_arrays` halves, split

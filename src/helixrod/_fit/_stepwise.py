@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .._compile import filter_jit, jit, split_arrays
+from .._compile import compile_ahead, filter_jit, jit, split_arrays
 from .._status import RESULTS, promote, succeeded
 
 _TAGS: frozenset = frozenset()
@@ -100,6 +100,19 @@ SIGMA_TOLERANCE = 1e-6
 #: again with those of the solution), here and in `fit_stiffness`'s compiled path; where
 #: the weights have not settled by then, the result is `RESULTS.weights_not_settled`.
 HELD_WEIGHTS_ROUNDS = 20
+
+
+def compile_steps_ahead(solver, physical, z, residuals, jacobian, sigma) -> None:
+    """Start compiling the programs of `stepwise_least_squares`'s steps (`compile_ahead`)
+    for internal coordinates like `z` and a model whose residuals, Jacobian and moving sigmas
+    will be like `residuals`, `jacobian` and `sigma` (`jax.ShapeDtypeStruct`s of a model
+    program compiling ahead, or None for sigma), placed as the loop places them: beside the
+    model's compilation, not after it."""
+    arrays, static = split_arrays((solver, physical))
+    z = jax.ShapeDtypeStruct(z.shape, z.dtype, sharding=residuals.sharding)  # `place` in the loop
+    dynamic = compile_ahead(_start, static, arrays, z, residuals, jacobian)
+    if dynamic is not None:
+        compile_ahead(_step, static, arrays, z, dynamic, residuals, jacobian, sigma, sigma)
 
 
 def stepwise_least_squares(jacobian_at: Callable, physical: Callable, z0, solver, max_steps: int):

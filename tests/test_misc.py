@@ -137,6 +137,33 @@ def test_solve_small_derivatives_in_the_matrix_to_second_order_match_lapack(rng)
     )
 
 
+def test_three_by_three_systems_in_closed_form_match_lapack_to_second_order(rng):
+    """3 x 3 systems are solved by the adjugate (no pivoting): against `jnp.linalg.solve` on a
+    matrix that partial pivoting would reorder and on one of condition ~1e8, with matrix
+    right-hand sides, first and second derivatives through both solves (the derivative rule's
+    tangent solve is `solve_small_linear`, closed form too), and a singular matrix (not
+    finite, as LAPACK's)."""
+    solve_small, solve_linear = jax.jit(_misc.solve_small), jax.jit(_misc.solve_small_linear)
+    U, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    for A in (np.array([[1e-9, 2.0, 1.0], [1.0, 1.0, 0.0], [3.0, 0.0, 1.0]]), U @ np.diag([1.0, 1e-4, 1e-8]) @ U.T):
+        B = rng.normal(size=(3, 2))
+        expected = np.linalg.solve(A, B)
+        tolerance = 1e-15 * np.linalg.cond(A) * np.abs(expected).max()
+        np.testing.assert_allclose(solve_small(A, B), expected, atol=tolerance)
+        np.testing.assert_allclose(solve_linear(A, B), expected, atol=tolerance)
+    A0, b0, direction = rng.normal(size=(3, 3)), rng.normal(size=3), rng.normal(size=(3, 3))
+
+    def curve(solve):
+        return lambda t: solve(A0 + t[0] * direction + t[1] ** 2 * A0.T, jnp.cos(t[1]) * b0)
+
+    t0 = jnp.array([0.2, -0.3])
+    for order in (jax.jacfwd, lambda f: jax.jacfwd(jax.jacfwd(f)), lambda f: jax.jacrev(jax.jacfwd(f))):
+        np.testing.assert_allclose(
+            jax.jit(order(curve(_misc.solve_small)))(t0), jax.jit(order(curve(jnp.linalg.solve)))(t0), rtol=1e-10, atol=1e-11
+        )
+    assert not np.all(np.isfinite(np.asarray(solve_small(np.ones((3, 3)), np.ones(3)))))
+
+
 def test_solve_small_matches_lapack_and_pivots(rng):
     # Jitted, as inside the models that use it (eagerly, each unrolled step of the
     # elimination is compiled on its own: ~30 s of this test).

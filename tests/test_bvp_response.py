@@ -229,3 +229,25 @@ def test_bad_curve_arguments_raise_clear_errors():
         hr.axial_response(SPRING, 10.0, force=FORCES, rotation=jnp.ones(3))
     with pytest.raises(ValueError, match="unknown observable"):
         tweezer_curve(jnp.asarray(2 * TURN), FORCES).end_effect("torque")
+
+
+@pytest.mark.heavy
+def test_a_first_curve_compiles_its_solves_and_their_test_side_by_side_once(compilations, monkeypatch):
+    """A curve's solves and their stability test are two programs (the test does not steer
+    the continuation), compiled each on a thread of its own at the first curve of a
+    signature, from the specs of the values they will be called with: the calls find those
+    compilations.  A curve of its own size (no other test solves 7 points); the test's
+    results equal those of single solves."""
+    from helixrod import _compile
+
+    monkeypatch.setattr(_compile, "cores", lambda: 2)  # as on a machine of several cores
+    forces = jnp.linspace(0.0, 0.03, 7)
+    curve = hr.force_extension(SPRING, 2 * TURN, forces, moment=0.0, segments=4)
+    names = ("_curve", "_stability_of_points")
+    ours = sorted((thread, name) for thread, name in compilations if name in names)
+    assert ours == [(f"helixrod-compile-{name}", name) for name in names], ours
+    assert bool(jnp.all(curve.ok)) and curve.solutions.stability_pieces == DEFAULT_OPTIONS.stability_pieces
+    start, end = hr.axial_ends(SPRING, 2 * TURN, force=float(forces[-1]), moment=0.0)
+    single = hr.solve_boundary_value(SPRING, 2 * TURN, start=start, end=end, segments=4)
+    np.testing.assert_allclose(curve.stability_margin[-1], single.stability_margin, rtol=1e-6)
+    assert int(curve.instability_index[-1]) == int(single.instability_index)

@@ -36,11 +36,10 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._compile import filter_jit
-from .._geometry import unloaded_state
 from .._misc import check_integer, finite_scalar, float_dtype
 from .._rod import check_one_rod
 from ._bulk import length_scale, stiffness_scale
-from ._ends import AbstractEnd, Clamped
+from ._ends import AbstractEnd, Clamped, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
 from ._shooting import ShootingArgs, shooting_residual
 from ._solve import ode_tolerances, solve_boundary_value
@@ -282,7 +281,7 @@ def follow_branch(
     length = finite_scalar(length, "length", owner, positive=True)
     options = with_settings(options, segments=segments, stability_pieces=stability_pieces)
     if start is None:
-        start = Clamped(*unloaded_state(rod, 0.0))
+        start = unloaded_clamp(rod)
     probe = end(jnp.asarray(first, float_dtype()))
     if not isinstance(probe, AbstractEnd):
         raise ValueError(f"{owner}: end({first}) must return Clamped, Loaded or Tweezer, got {type(probe).__name__}")

@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._compile import jit
 from .._geometry import unloaded_observables, unloaded_state
 from .._lie import check_rotation, gibbs, rotation_vector, rotation_z, so3_exp
 from .._misc import finite_array, finite_scalar, float_dtype
@@ -218,6 +219,14 @@ class Tweezer(AbstractEnd):
         return end_condition(TWEEZER, frame=self.frame, force=self.force)
 
 
+@jit(run_once=True)
+def unloaded_clamp(rod) -> Clamped:
+    """The clamp at s = 0 of the unloaded rod in its canonical placement (`unloaded_state`):
+    a program of its own, compiled to run once (evaluated operation by operation, ~25
+    one-operation programs, 0.5-1 s of a first call)."""
+    return Clamped(*unloaded_state(rod, 0.0))
+
+
 def axial_ends(
     rod,
     length: ArrayLike,
@@ -253,7 +262,7 @@ def axial_ends(
         raise ValueError(f"axial_ends: {error}") from None
     length = finite_scalar(length, "length", "axial_ends", positive=True)
     values = {n: finite_scalar(v, n, "axial_ends") for n, v in given.items()}
-    start = Clamped(*unloaded_state(rod, 0.0))
+    start = unloaded_clamp(rod)
     kind = AXIAL_CONTROLS[name].kind
     end = axial_end_condition(rod, length, kind, [values.get(n, 0.0) for n in AXIAL_OBSERVABLES])
     if kind == LOADED:

@@ -31,18 +31,18 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._compile import filter_jit
+from .._compile import compile_ahead, filter_jit, jit
 from .._geometry import unloaded_observables, unloaded_state
 from .._lie import twist_angle, unwrap_near
-from .._misc import check_choice, finite_scalar, float_dtype, is_concrete, no_gradient
+from .._misc import check_choice, finite_scalar, float_dtype, is_concrete, no_gradient, replaced
 from .._progress import ProgressArgument, ProgressReport, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import check_one_rod
 from .._status import RESULTS, raise_if_failed
 from ._bulk import BulkHelix, bulk_helix_at
-from ._ends import AXIAL_CONTROLS, AXIAL_OBSERVABLES, CONTROL_INDEX, LOADED, Clamped, axial_controls, axial_end_condition
+from ._ends import AXIAL_CONTROLS, AXIAL_OBSERVABLES, CONTROL_INDEX, LOADED, Clamped, axial_controls, axial_end_condition, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
 from ._shooting import default_warm_start
-from ._solve import BoundaryValueSolution, fit_guess, parse_guess, solve
+from ._solve import BoundaryValueSolution, fit_guess, parse_guess, solve, stability_at_points
 
 MODES = ("continuation", "independent")
 
@@ -175,7 +175,7 @@ def _independent_points(rod, length, kind, values, hints, options: BoundaryValue
 
     def one(v, hint):
         end = axial_end_condition(rod, length, kind, v)
-        sol = solve(rod, length, start, end, guess, None, options)
+        sol = solve(rod, length, start, end, guess, None, options, test_stability=False)
         bulk = bulk_helix_at(rod, length, index, v, unloaded) if with_bulk else _no_bulk(values.dtype)
         if hint is None:
             hint = jnp.where(bulk.ok, bulk.rotation, theta0)
@@ -193,7 +193,7 @@ def _continuation_start(rod, length, kind, first, options: BoundaryValueOptions,
     first_end = axial_end_condition(rod, length, kind, first)
     guess0 = no_gradient(default_warm_start(rod, length, start, first_end, options.segments, "helix"))
     if guess is not None:
-        solved = no_gradient(solve(rod, length, start, first_end, guess, None, options))
+        solved = no_gradient(solve(rod, length, start, first_end, guess, None, options, test_stability=False))
         guess0 = jax.tree.map(lambda a, b: jnp.where(solved.ok, a, b), solved.warm_start(), guess0)
     bulk0 = bulk_helix_at(rod, length, jnp.asarray(CONTROL_INDEX)[kind], first, unloaded)
     return guess0, unloaded, jnp.where(bulk0.ok, bulk0.rotation, theta0)
@@ -208,7 +208,7 @@ def _continuation_points(rod, length, kind, values, options: BoundaryValueOption
     def step(carry, v):
         guess, bulk_guess, hint = carry
         end = axial_end_condition(rod, length, kind, v)
-        sol = solve(rod, length, start, end, guess, None, options)
+        sol = solve(rod, length, start, end, guess, None, options, test_stability=False)
         bulk = bulk_helix_at(rod, length, index, v, bulk_guess)
         obs, bulk_obs = _observe(rod, length, kind, sol, bulk, v, hint)
         # A failed point does not spoil the warm start of the next one.
@@ -221,17 +221,62 @@ def _continuation_points(rod, length, kind, values, options: BoundaryValueOption
     return jax.lax.scan(step, carry, values)
 
 
-@filter_jit(trace_cache=True)
+@jit(static_argnames=("mode", "with_bulk"), trace_cache=True)
 def _curve(rod, length, kind, values, options: BoundaryValueOptions, mode: str, hints=None, with_bulk: bool = True, guess=None):
     """Solve every point of a curve in one compiled program; `values` `(n, 4)` = (F, M, h,
     Theta) per point.  `hints` `(n,)`: rotations near which to count whole turns
     (independent mode; default the bulk prediction's); `with_bulk=False` (independent
     mode): no bulk prediction.  `guess` (as `solve`): the start of every point (independent
-    mode) or of the first (continuation; the default guess where that solve fails)."""
+    mode) or of the first (continuation; the default guess where that solve fails).  The
+    solutions are not tested for stability: `_tested` does that, in a program of its own."""
     if mode == "independent":
         return _independent_points(rod, length, kind, values, hints, options, with_bulk, guess)
     carry = _continuation_start(rod, length, kind, values[0], options, guess)
     return _continuation_points(rod, length, kind, values, options, carry)[1]
+
+
+def _stability_of_points(rod, length, kind, values, N, M0, xs, frames, result, options: BoundaryValueOptions):
+    """The stability test of each point's solution (its `N`, `M0`, nodes and `result`) at
+    its controls `values` `(n, 4)`."""
+    ends = jax.vmap(lambda v: axial_end_condition(rod, length, kind, v))(values)
+    return stability_at_points(rod, length, ends, N, M0, xs, frames, result, options)
+
+
+# A program of its own: a curve's solves (whose continuation the test does not steer) and
+# their tests compile side by side at a first call (`_compile_side_by_side`).
+_points_stability = jit(_stability_of_points, trace_cache=True)
+
+
+def _tested(rod, length, kind, values, sols: BoundaryValueSolution, options: BoundaryValueOptions) -> BoundaryValueSolution:
+    """The curve's solutions `sols` with their stability tested on `options.stability_pieces`
+    pieces (untested, as solved, where that is 0)."""
+    if options.stability_pieces == 0:
+        return sols
+    index, margin, push = _points_stability(
+        rod, length, kind, values, sols.force, sols.moment0, sols.node_position, sols.node_frame, sols.result, options
+    )
+    return replaced(sols, instability_index=index, stability_margin=margin, unstable_direction=push, stability_pieces=options.stability_pieces)
+
+
+#: The curves whose programs `_compile_side_by_side` started compiling.
+_compiled_side_by_side: set = set()
+
+
+def _compile_side_by_side(rod, length, kind, values, options, mode, hints, with_bulk, guess) -> None:
+    """At the first curve of its kind: start compiling its solves (`_curve`) and their
+    stability test (`_points_stability`, from the solves' output structure), each on a
+    thread of its own (`compile_ahead`)."""
+    leaves = jax.tree.leaves((rod, length, kind, values, options, hints, guess))
+    key = (jax.tree.structure((rod, options, hints, guess)), mode, with_bulk, tuple((jnp.shape(a), jnp.result_type(a)) for a in leaves))
+    if key in _compiled_side_by_side:
+        return
+    solved = compile_ahead(_curve, rod, length, kind, values, options, mode, hints, with_bulk, guess)
+    if solved is None:  # nothing compiles beside the call (traced, one core): try again next time
+        return
+    _compiled_side_by_side.add(key)
+    sols = solved[2]
+    if options.stability_pieces > 0:
+        compile_ahead(_points_stability, rod, length, kind, values, sols.force, sols.moment0, sols.node_position, sols.node_frame, sols.result, options)
 
 
 # While progress is shown, a curve is solved in host-side batches of points, each one call
@@ -245,11 +290,22 @@ def _curve_in_batches(rod, length, kind, values, options, mode, hints, with_bulk
     """`_curve` in batches of points, advancing `report` after each (the same results)."""
     n = values.shape[0]
     size = batch_size(n)
+
+    def tested(batch, out):
+        obs, bulk_obs, sols, bulk_ok = out
+        return obs, bulk_obs, _tested(rod, length, kind, batch, sols, options), bulk_ok
+
     if mode == "independent":
-        solve_batch = lambda _, batch: (None, _independent_batch(rod, length, kind, *batch, options, with_bulk, guess))  # noqa: E731
+        def solve_batch(_, batch):
+            return None, tested(batch[0], _independent_batch(rod, length, kind, *batch, options, with_bulk, guess))
+
         return scan_in_batches(solve_batch, None, (values, hints), n, size, report)[1]
     carry = _continuation_first(rod, length, kind, values[0], options, guess)
-    solve_batch = lambda carry, batch: _continuation_batch(rod, length, kind, batch, options, carry)  # noqa: E731
+
+    def solve_batch(carry, batch):
+        carry, out = _continuation_batch(rod, length, kind, batch, options, carry)
+        return carry, tested(batch, out)
+
     return scan_in_batches(solve_batch, carry, values, n, size, report)[1]
 
 
@@ -350,7 +406,7 @@ def _response(
     guess, guess_kind = parse_guess(guess, owner)
     if guess_kind != "helix":
         raise ValueError(f"{owner}: guess must be None, a BoundaryValueSolution or (n0, m0)")
-    guess = fit_guess(guess, options.segments, Clamped(*unloaded_state(rod, 0.0)))
+    guess = fit_guess(guess, options.segments, unloaded_clamp(rod))
     hints = None
     if rotation_hint is not None or not bulk:
         if mode != "independent":
@@ -372,7 +428,10 @@ def _response(
                 rod, length, kind, values, options, mode, hints, bool(bulk), guess, report
             )
         else:  # one call: nothing is slower for want of a bar
+            if concrete:
+                _compile_side_by_side(rod, length, kind, values, options, mode, hints, bool(bulk), guess)
             obs, bulk_obs, sols, bulk_ok = _curve(rod, length, kind, values, options, mode, hints, bool(bulk), guess)
+            sols = _tested(rod, length, kind, values, sols, options)
     curve = ResponseCurve(
         controls=name,
         swept=swept,
@@ -415,7 +474,7 @@ def _first_loss_of_stability(rod, length, kind, values, swept, sols, options):
         return np.nan, "none"
     i = int(lost[0])
     column = AXIAL_OBSERVABLES.index(swept)
-    start = Clamped(*unloaded_state(rod, 0.0))
+    start = unloaded_clamp(rod)
     take = lambda j: jax.tree.map(lambda a: a[j], sols)  # noqa: E731
     good, bad = take(i), take(i + 1)
     a, b = values[i], values[i + 1]

@@ -39,7 +39,7 @@ from .._misc import finite_scalar, float_dtype, increasing_within, is_concrete, 
 from .._rod import check_one_rod
 from .._status import RESULTS, promote, raise_if_failed, succeeded
 from ._bulk import length_scale, stiffness_scale
-from ._ends import CLAMPED, LOADED, AbstractEnd, Clamped, EndCondition, end_condition
+from ._ends import CLAMPED, LOADED, AbstractEnd, Clamped, EndCondition, end_condition, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
 from ._stability import PIECE_RESOLUTION, stability, stiffness_range
 from ._shooting import (
@@ -160,6 +160,14 @@ def _stability_where_solved(rod, length, end: EndCondition, N, M0, xs, frames, r
     return jnp.where(defined, index, -1), jnp.where(defined, margin, jnp.nan), jnp.where(defined, push, 0.0)
 
 
+def stability_at_points(rod, length, ends: EndCondition, N, M0, xs, frames, result, options: BoundaryValueOptions):
+    """The stability test of many solutions of one rod (`restability`'s, vmapped over the
+    leading axis of `ends` and the solutions' arrays): `(index, margin, push)` per point."""
+    return jax.vmap(_stability_where_solved, in_axes=(None, None, 0, 0, 0, 0, 0, 0, None))(
+        rod, length, ends, N, M0, xs, frames, result, options
+    )
+
+
 # In a program of its own: the solve and the test compile side by side at a first call
 # (`_compile_side_by_side`), and a finer test needs no new solve, nor a compilation of one.
 _stability_of = jit(_stability_where_solved, trace_cache=True)
@@ -174,14 +182,8 @@ def restability(rod, length, end: EndCondition, sol, options: BoundaryValueOptio
     return replaced(sol, instability_index=index, stability_margin=margin, unstable_direction=push, stability_pieces=options.stability_pieces)
 
 
-# Programs of their own, compiled to run once (one per call of `solve_boundary_value`):
-# evaluated operation by operation they compiled ~25 one-operation programs (~0.5 s).
-@jit(run_once=True)
-def _default_start(rod) -> Clamped:
-    """The clamp at s = 0 of the unloaded rod in its canonical placement (`unloaded_state`)."""
-    return Clamped(*unloaded_state(rod, 0.0))
-
-
+# A program of its own, compiled to run once (one per call of `solve_boundary_value`), as
+# `unloaded_clamp` is: evaluated operation by operation each compiled one-operation programs.
 @jit(run_once=True)
 def _bending_stiffness(rod):
     """$\\partial m_1/\\partial u_1$ at the intrinsic twist."""
@@ -412,7 +414,7 @@ def solve_boundary_value(
     if not isinstance(end, AbstractEnd):
         raise ValueError(f"{owner}: end must be Clamped, Loaded or Tweezer, got {type(end).__name__}")
     if start is None:
-        start = _default_start(rod)
+        start = unloaded_clamp(rod)
     if not isinstance(start, Clamped):
         raise ValueError(f"{owner}: start must be Clamped, got {type(start).__name__}")
     end = type(end).condition(end)  # not `end.condition()`: equinox binds a method as a Module (~20 us)

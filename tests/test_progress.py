@@ -215,15 +215,16 @@ def test_response_curve_progress(mode, capsys):
 
 @pytest.mark.heavy
 def test_stability_atlas_progress(capsys):
-    """Four points of the atlas of tests/test_atlas.py in chunks of 5 helices: batches of
-    two whole chunks (the last padded) and the one helix left over, the atlas of the single
-    call bit for bit."""
+    """Four points of the atlas of tests/test_atlas.py, 16 helices in chunks of at most 6:
+    three chunks of 6 (as few as that allows, of equal width; the last padded by two), in
+    batches of two whole chunks (the last padded by a chunk); the atlas of the single call
+    bit for bit."""
     kappa = jnp.array([1.4, 1.6, 1.8, 2.0])
-    off = hr.stability_atlas(ATLAS_ROD, kappa, -0.5, 5.0, chunk_size=5)
+    off = hr.stability_atlas(ATLAS_ROD, kappa, -0.5, 5.0, chunk_size=6)
     assert capsys.readouterr().out == ""
     record = Recorder()
-    on = hr.stability_atlas(ATLAS_ROD, kappa, -0.5, 5.0, chunk_size=5, progress=record)
-    assert record.calls == [(10, 16), (15, 16), (16, 16)]
+    on = hr.stability_atlas(ATLAS_ROD, kappa, -0.5, 5.0, chunk_size=6, progress=record)
+    assert record.calls == [(12, 16), (16, 16)]
     assert same(on, off)
     with pytest.raises(ValueError, match="stability_atlas: progress"):
         hr.stability_atlas(ATLAS_ROD, kappa, -0.5, 5.0, progress="yes")

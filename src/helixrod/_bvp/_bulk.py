@@ -9,7 +9,7 @@ $\\mu = 0$), so the branch is the one continuously connected to the unloaded spr
 uniform helix $F = \\mu_2|u|$, $M = \\mu_1|u| + \\mu_2 u_3/|u|$, $h = L u_3/|u|$ and $\\Theta = L|u|$.
 This is the prediction against which finite rods are compared, and the default guess of
 `solve_boundary_value`.  Under a given force and moment the multipliers are explicit,
-$\mu_2 = F/|u|$ and $\mu_1 = (M - F u_3/|u|^2)/|u|$, and the balance is three equations in
+$\\mu_2 = F/|u|$ and $\\mu_1 = (M - F u_3/|u|^2)/|u|$, and the balance is three equations in
 $u$ alone (`_wrench_residual`).
 """
 
@@ -150,8 +150,8 @@ def bulk_helix_at(
 
     With `index` known to be (force, moment) -- not traced -- the solve is
     `helix_under_wrench`'s, in $u$ alone; the multipliers follow from $u$ and the loads.
-    (Measured on the bundled tweezer fit, whose model solves it per point and
-    differentiates it to third order, against the five unknowns: its program's tracing
+    (Measured on the bundled tweezer fit, whose model solves it per point and then
+    differentiated it to third order, against the five unknowns: its program's tracing
     2.8 -> 2.55 s, XLA compilation 5.7 -> 4.5 s, a later call of it 18 -> 7 ms, the fit's
     first call 10.7-11.3 -> 8.6-8.8 s, one process each on 2 cores; the same fit to
     1e-14.)"""
@@ -205,7 +205,8 @@ def helix_under_wrench(
     and `moment` (`bulk_helix_at` of that pair: three equations in $u$, the multipliers
     eliminated), from the twist `guess` (default $\\hat u$), and its `RESULTS` code;
     the modes as `bulk_helix_at`'s.  Only $u$ carries derivatives: a caller that needs
-    little else (the tweezer model, differentiated to third order) traces nothing more."""
+    little else (the tweezer model, which a fit differentiates to second order) traces
+    nothing more."""
     dtype = float_dtype()
     k_scale = stiffness_scale(rod)
     ell = length_scale(rod, jnp.asarray(length, dtype))

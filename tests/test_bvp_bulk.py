@@ -1,7 +1,9 @@
 """The bulk (uniform) helix of a finite rod under two axial controls (bulk_helix): every pair
 of controls reproduces the other two observables of one helix, each helix checked against
 the balance equations (`helix_residual`) and the axial observables computed here from its
-twist; bad pairs and failures.  All calls share one compiled program (the pair is traced)."""
+twist; bad pairs and failures.  A force and moment given are solved for the twist alone
+(the multipliers eliminated), the other pairs for twist and multipliers: the pairs'
+agreement checks the one solve against the other."""
 
 import numpy as np
 import pytest

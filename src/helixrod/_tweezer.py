@@ -254,9 +254,9 @@ def _extension_and_rotation(ell, u):
     return ell * u[2] / norm, ell * norm
 
 
-def _gibbs(rod, ell, u, force, torque):
-    """The Gibbs free energy per base pair of the rod's helix of twist `u` under (force, torque)."""
-    extension, rotation = _extension_and_rotation(ell, u)
+def _gibbs(rod, ell, u, extension, rotation, force, torque):
+    """The Gibbs free energy per base pair of the rod's helix of twist `u` (its `extension`
+    and `rotation` per base pair, `_extension_and_rotation`) under (force, torque)."""
     return ell * rod.energy(u) - force * extension - torque * rotation
 
 
@@ -290,7 +290,7 @@ def response_point(rod, ell, rise, force, control, torque_controlled, persistenc
     rotation0, compliance, (root0, result0) = jax.jvp(rotation_at, (zero,), (jnp.ones_like(zero),), has_aux=True)
     # Outside the tangent in the torque (which only the compliance needs).
     extension0 = _extension_and_rotation(ell, root0)[0]
-    gibbs0 = _gibbs(rod, ell, root0, F, zero)
+    gibbs0 = _gibbs(rod, ell, root0, extension0, rotation0, F, zero)
     C0 = rise / compliance
 
     # Twist fluctuations (Moroz-Nelson) as a series compliance t(F) and its force derivative.

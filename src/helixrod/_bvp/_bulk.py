@@ -82,10 +82,15 @@ def _wrench_residual(x, args):
     k_scale, ell = scales[0], scales[1]
     u = x / ell
     squared = jnp.sum(u * u) + 1e-300
-    norm = jnp.sqrt(squared)
-    mu1, mu2 = (moment - force * u[2] / squared) / norm, force / norm
+    mu1, mu2 = _multipliers(u, squared, jnp.sqrt(squared), force, moment)
     e3 = jnp.array([0.0, 0.0, 1.0], u.dtype)
     return (rod.moment(u) - mu1 * u - mu2 * e3) / (k_scale / ell)
+
+
+def _multipliers(u, squared, norm, force, moment):
+    """$(\\mu_1, \\mu_2)$ of the uniform helix of twist `u` ($|u|^2$ `squared`, $|u|$ `norm`)
+    under axial `force` and `moment` (module docstring)."""
+    return (moment - force * u[2] / squared) / norm, force / norm
 
 
 def _bulk_residual(z, args):
@@ -165,7 +170,7 @@ def bulk_helix_at(
         u, result = helix_under_wrench(rod, length, values[0], values[1], guess[0], **modes)
         norm = jnp.linalg.norm(u)
         safe = jnp.where(norm > 0, norm, 1.0)
-        mu1, mu2 = (values[1] - values[0] * u[2] / safe**2) / safe, values[0] / safe
+        mu1, mu2 = _multipliers(u, safe**2, safe, values[0], values[1])
     else:
         k_scale = stiffness_scale(rod)
         ell = length_scale(rod, length)

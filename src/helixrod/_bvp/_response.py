@@ -34,7 +34,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._compile import compile_ahead, filter_jit, jit
 from .._geometry import unloaded_observables, unloaded_state
 from .._lie import twist_angle, unwrap_near
-from .._misc import check_choice, finite_scalar, float_dtype, is_concrete, no_gradient, replaced
+from .._misc import check_choice, finite_scalar, float_dtype, is_concrete, no_gradient
 from .._progress import ProgressArgument, ProgressReport, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import check_one_rod
 from .._status import RESULTS, raise_if_failed
@@ -42,7 +42,7 @@ from ._bulk import BulkHelix, bulk_helix_at
 from ._ends import AXIAL_CONTROLS, AXIAL_OBSERVABLES, CONTROL_INDEX, LOADED, Clamped, axial_controls, axial_end_condition, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
 from ._shooting import default_warm_start
-from ._solve import BoundaryValueSolution, fit_guess, parse_guess, solve, stability_at_points
+from ._solve import BoundaryValueSolution, fit_guess, parse_guess, solve, stability_at_points, stability_inputs, with_stability
 
 MODES = ("continuation", "independent")
 
@@ -252,10 +252,7 @@ def _tested(rod, length, kind, values, sols: BoundaryValueSolution, options: Bou
     pieces (untested, as solved, where that is 0)."""
     if options.stability_pieces == 0:
         return sols
-    index, margin, push = _points_stability(
-        rod, length, kind, values, sols.force, sols.moment0, sols.node_position, sols.node_frame, sols.result, options
-    )
-    return replaced(sols, instability_index=index, stability_margin=margin, unstable_direction=push, stability_pieces=options.stability_pieces)
+    return with_stability(sols, _points_stability(rod, length, kind, values, *stability_inputs(sols), options), options.stability_pieces)
 
 
 #: The curves whose programs `_compile_side_by_side` started compiling.
@@ -274,9 +271,8 @@ def _compile_side_by_side(rod, length, kind, values, options, mode, hints, with_
     if solved is None:  # nothing compiles beside the call (traced, one core): try again next time
         return
     _compiled_side_by_side.add(key)
-    sols = solved[2]
     if options.stability_pieces > 0:
-        compile_ahead(_points_stability, rod, length, kind, values, sols.force, sols.moment0, sols.node_position, sols.node_frame, sols.result, options)
+        compile_ahead(_points_stability, rod, length, kind, values, *stability_inputs(solved[2]), options)
 
 
 # While progress is shown, a curve is solved in host-side batches of points, each one call

@@ -160,6 +160,18 @@ def _stability_where_solved(rod, length, end: EndCondition, N, M0, xs, frames, r
     return jnp.where(defined, index, -1), jnp.where(defined, margin, jnp.nan), jnp.where(defined, push, 0.0)
 
 
+def stability_inputs(sol) -> tuple:
+    """What the stability test reads of a solution (or of a batch of them, or of their
+    `jax.ShapeDtypeStruct`s): `(N, M0, node positions, node frames, result)`."""
+    return sol.force, sol.moment0, sol.node_position, sol.node_frame, sol.result
+
+
+def with_stability(sol, tested, pieces: int):
+    """`sol` with the stability test's `(index, margin, push)` on `pieces` pieces (`replaced`)."""
+    index, margin, push = tested
+    return replaced(sol, instability_index=index, stability_margin=margin, unstable_direction=push, stability_pieces=pieces)
+
+
 def stability_at_points(rod, length, ends: EndCondition, N, M0, xs, frames, result, options: BoundaryValueOptions):
     """The stability test of many solutions of one rod (`restability`'s, vmapped over the
     leading axis of `ends` and the solutions' arrays): `(index, margin, push)` per point."""
@@ -178,8 +190,7 @@ def restability(rod, length, end: EndCondition, sol, options: BoundaryValueOptio
     call (the default cantilever): the program's dispatch 12 us with these arguments against
     56 us with the whole solution in and out, and `replaced` 6 us against 66 us for
     `dataclasses.replace`, which runs the solution's `__init__` again."""
-    index, margin, push = _stability_of(rod, length, end, sol.force, sol.moment0, sol.node_position, sol.node_frame, sol.result, options)
-    return replaced(sol, instability_index=index, stability_margin=margin, unstable_direction=push, stability_pieces=options.stability_pieces)
+    return with_stability(sol, _stability_of(rod, length, end, *stability_inputs(sol), options), options.stability_pieces)
 
 
 # A program of its own, compiled to run once (one per call of `solve_boundary_value`), as
@@ -230,7 +241,7 @@ def _compile_side_by_side(rod, length, start, end, guess, saveat, options, guess
         return
     _compiled_side_by_side.add(key)
     if options.stability_pieces > 0:
-        compile_ahead(_stability_of, rod, length, end, sol.force, sol.moment0, sol.node_position, sol.node_frame, sol.result, options)
+        compile_ahead(_stability_of, rod, length, end, *stability_inputs(sol), options)
 
 
 @jit(static_argnames=("guess_kind", "test_stability"), trace_cache=True)

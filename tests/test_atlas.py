@@ -240,3 +240,25 @@ def test_a_fold_is_a_pole_of_the_axial_stiffness():
         growth.append(np.max(jumps[1] / jumps[0]))
     # measured: fold 5.6 (c2; 4.1 for c1), branch point 0.25
     assert growth[0] > 3.0 and growth[1] < 0.5
+
+
+@pytest.mark.heavy
+def test_a_first_atlas_compiles_its_critical_lengths_beside_the_index_once(compilations, monkeypatch):
+    """The critical lengths' program compiles on a thread of its own at the first atlas of a
+    signature, from the specs of the wrenches the index program will give it (placed as
+    the grid is: a grid put on a device gives placed wrenches), and the calls find it; the
+    next atlas of that signature starts nothing."""
+    from helixrod import _compile
+
+    monkeypatch.setattr(_compile, "cores", lambda: 2)  # as on a machine of several cores
+    kappa, tau = jnp.meshgrid(jnp.linspace(0.4, 2.0, 3), jnp.linspace(-1.0, 1.0, 2))  # no other atlas has 24 helices
+    for grid in ((kappa, tau), jax.device_put((kappa, tau), jax.devices()[0])):
+        compilations.clear()
+        first = helixrod.stability_atlas(ROD, *grid, 5.0)
+        ours = [(thread, name) for thread, name in compilations if name == "_critical_lengths"]
+        assert ours == [("helixrod-compile-_critical_lengths", "_critical_lengths")], ours
+    compilations.clear()
+    again = helixrod.stability_atlas(ROD, kappa, tau, 5.0)
+    assert compilations == []
+    np.testing.assert_array_equal(np.asarray(again.critical_length), np.asarray(first.critical_length))
+    assert np.isfinite(np.asarray(first.critical_length)).any()

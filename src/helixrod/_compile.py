@@ -259,7 +259,7 @@ def _with_options(plain, tuned, options, traced_once=None):
             else:
                 traced = fallback.trace(*args, **kwargs)
                 structure = traced.out_info
-                placement = _committed_placement((args, kwargs))
+                placement = committed_placement((args, kwargs))
             lowered = traced.lower()
             structure = jax.tree.map(lambda a: _placed(a, placement), structure)
         except Exception:  # noqa: BLE001 - the call itself raises what is wrong, where it is
@@ -306,7 +306,30 @@ def compile_ahead(fun, *args, **kwargs):
     return None if ahead is None else ahead(*args, **kwargs)
 
 
-def _committed_placement(tree):
+def once_per_signature(signature):
+    """Decorator of a function that starts compiling an entry point's programs side by side
+    (`compile_ahead`) and returns whether it started them: it runs at the first call of each
+    `signature(*args)` (a hashable key of what the programs are compiled for), and again at
+    the next call where it could not start them (inside a caller's transformation, on one
+    core); once started, the calls with that signature find the programs in JAX's caches
+    and it does nothing (calling `compile_ahead` again would trace and lower them for
+    nothing)."""
+
+    def decorate(start):
+        started = set()
+
+        @functools.wraps(start)
+        def at_first_call(*args):
+            key = signature(*args)
+            if key not in started and start(*args):
+                started.add(key)
+
+        return at_first_call
+
+    return decorate
+
+
+def committed_placement(tree):
     """The placement of a program's results: that of a committed array argument (an array
     placed by `jax.device_put` or by a program whose arguments were, or the
     `jax.ShapeDtypeStruct` of one), else None (JAX leaves them uncommitted).  A program's

@@ -61,7 +61,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._compile import filter_jit
+from .._compile import committed_placement, compile_ahead, filter_jit, jit, once_per_signature
 from .._equilibria import helix_equilibria
 from .._misc import check_integer, finite_scalar, float_dtype, solve_small
 from .._lie import hat, so3_exp
@@ -197,10 +197,13 @@ def _with_extensibility(rod, T, s):
     return T.at[:3, 6:9].add(EXTENSIBILITY * s**3 / stiffness_range(rod)[1] * jnp.eye(3, dtype=T.dtype))
 
 
-def _body_transfer(rod, n, m, s):
+def _body_transfer(rod, n, m, s, exponential=None):
     """Transfer matrix of a piece of length `s` in body coordinates at its two ends (lab
-    ones for a start at the identity frame, up to the end's rotation)."""
-    T = _to_lab(n, m) @ _expm(_body_variation_matrix(rod, n, m) * s) @ _to_lab(n, m, -1.0)
+    ones for a start at the identity frame, up to the end's rotation); `exponential`:
+    $e^{As}$ of `_body_variation_matrix`, where the caller has it."""
+    if exponential is None:
+        exponential = _expm(_body_variation_matrix(rod, n, m) * s)
+    T = _to_lab(n, m) @ exponential @ _to_lab(n, m, -1.0)
     return _with_extensibility(rod, T, s)
 
 
@@ -210,24 +213,27 @@ def _negative_count(S):
     first; pure arithmetic, no LAPACK call)."""
     size = S.shape[-1]
     rows = jnp.arange(size)
-    remaining = jnp.ones(size, bool)
-    count = jnp.zeros((), jnp.int32)
-    for _ in range(size):
+
+    def eliminate(_, carry):
+        S, remaining, count = carry
         p = jnp.argmax(jnp.where(remaining, jnp.abs(jnp.diagonal(S)), -1.0))
         column = S[:, p]
         pivot = column[p]
-        count = count + (pivot < 0)
         S = S - jnp.outer(column, column) / jnp.where(pivot == 0, 1.0, pivot)
-        remaining = remaining & (rows != p)
-    return count
+        return S, remaining & (rows != p), count + (pivot < 0)
+
+    # A loop, not unrolled: one copy of the elimination in the program (it is traced twice,
+    # vmapped over every helix).
+    return jax.lax.fori_loop(0, size, eliminate, (S, jnp.ones(size, bool), jnp.zeros((), jnp.int32)))[2]
 
 
-def _node_blocks(rod, n, m, h, scale):
-    """The blocks (H_aa, H_ab, H_bb) of the Hessian of a piece of length `h` in its two nodes'
-    body variations (`piece_hessian`; the symmetric part, as `second_variation`), the node
-    positions scaled by `scale` (a congruence: the inertia is unchanged, the pivots balanced)."""
-    weight = jnp.concatenate([jnp.full(3, scale), jnp.ones(3, n.dtype)])
-    H = piece_hessian(_body_transfer(rod, n, m, h)) * jnp.tile(weight, 2)[:, None] * jnp.tile(weight, 2)[None, :]
+def _node_blocks(transfer, scale):
+    """The blocks (H_aa, H_ab, H_bb) of the Hessian of a piece with body `transfer` matrix
+    (`_body_transfer`) in its two nodes' body variations (`piece_hessian`; the symmetric part,
+    as `second_variation`), the node positions scaled by `scale` (a congruence: the inertia
+    is unchanged, the pivots balanced)."""
+    weight = jnp.concatenate([jnp.full(3, scale), jnp.ones(3, transfer.dtype)])
+    H = piece_hessian(transfer) * jnp.tile(weight, 2)[:, None] * jnp.tile(weight, 2)[None, :]
     H = 0.5 * (H + H.T)
     return H[:6, :6], H[:6, 6:], H[6:, 6:]
 
@@ -256,7 +262,13 @@ def _conjugate_point(rod, n, m, max_length, bisections: int):
     step = max_length / CRITICAL_SAMPLES
     k_min = stiffness_range(rod)[0]
     resolved = step * (jnp.sqrt(jnp.linalg.norm(n) / k_min) + jnp.linalg.norm(m) / k_min) <= PIECE_RESOLUTION
-    H_aa, Q, H_bb = _node_blocks(rod, n, m, step, step)
+    A = _body_variation_matrix(rod, n, m)
+
+    def transfer(s, exponential=None):
+        return _body_transfer(rod, n, m, s, _expm(A * s) if exponential is None else exponential)
+
+    transfer_step = transfer(step)
+    H_aa, Q, H_bb = _node_blocks(transfer_step, step)
     node = H_bb + H_aa
 
     def sample(G, _):
@@ -268,24 +280,33 @@ def _conjugate_point(rod, n, m, max_length, bisections: int):
     k = jnp.argmax(changed)
     G = node - schur[k]  # the correction at the last free node
 
-    def last_schur(r):
-        return H_bb + _node_blocks(rod, n, m, r, step)[0] - G
+    def last_schur(last_transfer):
+        return H_bb + _node_blocks(last_transfer, step)[0] - G
 
-    def bisect(bracket, _):
-        lo, hi = bracket
+    # Bisection on r in (0, step): the exponential at the midpoint is the one at the lower
+    # end times that of the half-width, e^{A step / 2^(j+1)} at halving j, all squared up
+    # from the smallest -- one product a halving instead of an exponential (its 28 products).
+    smallest = _expm(A * (step / 2.0**bisections))
+    _, halves = jax.lax.scan(lambda E, _: (E @ E, E), smallest, None, length=bisections)
+
+    def bisect(bracket, half):
+        lo, hi, exponential_lo = bracket
         mid = 0.5 * (lo + hi)
-        before = _negative_count(last_schur(mid)) == 0
-        return (jnp.where(before, mid, lo), jnp.where(before, hi, mid)), None
+        exponential_mid = exponential_lo @ half
+        before = _negative_count(last_schur(transfer(mid, exponential_mid))) == 0
+        return (jnp.where(before, mid, lo), jnp.where(before, hi, mid), jnp.where(before, exponential_mid, exponential_lo)), None
 
-    (lo, hi), _ = jax.lax.scan(bisect, (jnp.zeros((), n.dtype), step), None, length=bisections)
+    start = (jnp.zeros((), n.dtype), step, jnp.eye(12, dtype=n.dtype))
+    (lo, hi, _), _ = jax.lax.scan(bisect, start, halves, reverse=True)  # the largest half first
     r = 0.5 * (lo + hi)
+    transfer_r = transfer(r)
     found = jnp.any(changed)
     length = jnp.where(found, (k + 1) * step + r, jnp.inf)
     length = jnp.where(resolved, length, jnp.nan)
 
     # The Jacobi field at the nodes, scaled (dx / step, dtheta): the null vector of the last
     # Schur complement, then back along the others (those beyond node k left as they are).
-    last = _null_vector(last_schur(r))
+    last = _null_vector(last_schur(transfer_r))
 
     def back(zeta, j):
         earlier = -solve_small(schur[j], Q @ zeta)
@@ -295,11 +316,11 @@ def _conjugate_point(rod, n, m, max_length, bisections: int):
     weight = jnp.concatenate([jnp.full(3, step), jnp.ones(3, n.dtype)])
     # The start wrench that bends the first piece into it (B^{-1} of that piece), as
     # (L dN, dM0): both parts moments.
-    wrench = solve_small(_body_transfer(rod, n, m, step)[:6, 6:], weight * first)
+    wrench = solve_small(transfer_step[:6, 6:], weight * first)
     mode = jnp.concatenate([length * wrench[:3], wrench[3:]])
     mode = mode / jnp.linalg.norm(mode)
     # Its reaction on the end clamp, paired with (dx / step, dtheta), then (dx / L, dtheta).
-    reaction = _node_blocks(rod, n, m, r, step)[1].T @ last * jnp.concatenate([jnp.full(3, length / step), jnp.ones(3, n.dtype)])
+    reaction = _node_blocks(transfer_r, step)[1].T @ last * jnp.concatenate([jnp.full(3, length / step), jnp.ones(3, n.dtype)])
     return length, mode, reaction / jnp.linalg.norm(reaction)
 
 
@@ -336,10 +357,12 @@ def _null_vector(S):
     zero by its inverse); a shift of round-off size keeps an exactly singular one finite."""
     S = S + 1e-14 * jnp.max(jnp.abs(S)) * jnp.eye(S.shape[-1], dtype=S.dtype)
     v = jnp.array([0.9, -0.7, 0.6, 0.8, -0.5, 0.4], S.dtype)  # generic: no symmetry's zero
-    for _ in range(NULL_ITERATIONS):
+
+    def iterate(_, v):
         v = solve_small(S, v)
-        v = v / jnp.linalg.norm(v)
-    return v
+        return v / jnp.linalg.norm(v)
+
+    return jax.lax.fori_loop(0, NULL_ITERATIONS, iterate, v)
 
 
 def _clamped_helix_stability(rod, n, m, length, pieces: int):
@@ -388,7 +411,7 @@ def _atlas(rod, kappa, tau, length, pieces: int, chunk_size: int):
     return valid, stable, index, margin, n, m
 
 
-@filter_jit
+@jit(static_argnames=("bisections", "chunk_size"))
 def _critical_lengths(rod, n, m, max_length, bisections: int, chunk_size: int):
     # A program of its own: compiled into `_atlas`, beside the batched eigh of the index, it
     # deadlocked XLA's CPU thread pool (jaxlib 0.10.2, 2 cores, concurrency-optimised
@@ -396,11 +419,48 @@ def _critical_lengths(rod, n, m, max_length, bisections: int, chunk_size: int):
     return _critical_points(rod, n, m, max_length, bisections, chunk_size)
 
 
+def _atlas_signature(rod, grid, max_length, bisections: int, chunk_size: int):
+    leaves = jax.tree.leaves((rod, grid, max_length))
+    shapes = tuple((jnp.shape(a), jnp.result_type(a)) for a in leaves)
+    return jax.tree.structure(rod), shapes, committed_placement((rod, grid)), bisections, chunk_size
+
+
+@once_per_signature(_atlas_signature)
+def _compile_side_by_side(rod, grid, max_length, bisections: int, chunk_size: int) -> bool:
+    """At the first atlas of its kind: start compiling the critical lengths' program on a
+    thread of its own (`compile_ahead`, for the body wrenches that `_atlas` will give it
+    from the arguments `grid` of its call, placed as they place them), while the index
+    program is traced, compiled and run.  Measured on the
+    20 x 20 atlas of `benchmarks/bench_first_calls.py` (2 cores, fresh processes
+    alternating): first call 4.5-5.3 s (median 4.9) against 5.6-7.3 s (median 6.1)."""
+    wrenches = jax.ShapeDtypeStruct((4 * grid[1].size, 3), max_length.dtype, sharding=committed_placement((rod, grid)))
+    return compile_ahead(_critical_lengths, rod, wrenches, wrenches, max_length, bisections, chunk_size) is not None
+
+
 # While progress is shown, the helices are tested in host-side batches of these programs
 # (the same two programs apart, for the same reason).
 _registers_jit = filter_jit(_registers)
 _indices_batch = filter_jit(_indices)
 _critical_batch = filter_jit(_critical_points)
+
+
+@jit
+def _defined_where_valid(valid, index, margin, critical, kind, mode):
+    """The tests' flat results in the grid's shape `valid.shape` (`batch + (4,)`), marked
+    not defined (-1, NaN) where the slot is not valid; `critical`, `kind` and `mode` None
+    where not computed (not defined anywhere).  One program, not a dozen of one operation."""
+    shape = valid.shape
+    index = jnp.where(valid, index.reshape(shape), -1)
+    margin = jnp.where(valid, margin.reshape(shape), jnp.nan)
+    if critical is None:
+        critical = jnp.full(shape, jnp.nan, margin.dtype)
+        kind = jnp.where(valid, NONE, -1).astype(jnp.int32)
+        mode = jnp.full(shape + (6,), jnp.nan, margin.dtype)
+    else:
+        critical = jnp.where(valid, critical.reshape(shape), jnp.nan)
+        kind = jnp.where(valid, kind.reshape(shape), -1)
+        mode = jnp.where(valid[..., None], mode.reshape(shape + (6,)), jnp.nan)
+    return index, margin, critical, kind, mode
 
 
 def _test_helices(rod, kappa, tau, length, max_length, critical_length: bool, bisections, pieces, chunk_size, report):
@@ -417,6 +477,8 @@ def _test_helices(rod, kappa, tau, length, max_length, critical_length: bool, bi
     total = 4 * kappa.size  # every register of every point
     chunk_size = -(-total // -(-total // chunk_size))
     if not report.shown:
+        if critical_length:
+            _compile_side_by_side(rod, (kappa, tau, length), max_length, bisections, chunk_size)
         valid, pointwise, index, margin, n, m = _atlas(rod, kappa, tau, length, pieces, chunk_size)
         if critical_length:
             critical, kind, mode = _critical_lengths(rod, n, m, max_length, bisections, chunk_size)
@@ -435,18 +497,9 @@ def _test_helices(rod, kappa, tau, length, max_length, critical_length: bool, bi
         index, margin = out[:2]
         if critical_length:
             critical, kind, mode = out[2:]
-    flat = valid.reshape(-1)
-    index = jnp.where(flat, index, -1).reshape(valid.shape)
-    margin = jnp.where(flat, margin, jnp.nan).reshape(valid.shape)
-    if critical_length:
-        critical = jnp.where(valid, critical.reshape(valid.shape), jnp.nan)
-        kind = jnp.where(valid, kind.reshape(valid.shape), -1)
-        mode = jnp.where(valid[..., None], mode.reshape(valid.shape + (6,)), jnp.nan)
-    else:
-        critical = jnp.full(valid.shape, jnp.nan, length.dtype)
-        kind = jnp.where(valid, NONE, -1).astype(jnp.int32)
-        mode = jnp.full(valid.shape + (6,), jnp.nan, length.dtype)
-    return valid, pointwise, index, margin, critical, kind, mode
+    if not critical_length:
+        critical = kind = mode = None
+    return (valid, pointwise) + _defined_where_valid(valid, index, margin, critical, kind, mode)
 
 
 def stability_atlas(

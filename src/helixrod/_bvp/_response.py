@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._compile import compile_ahead, filter_jit, jit
+from .._compile import compile_ahead, filter_jit, jit, once_per_signature
 from .._geometry import unloaded_observables, unloaded_state
 from .._lie import twist_angle, unwrap_near
 from .._misc import check_choice, finite_scalar, float_dtype, is_concrete, no_gradient
@@ -255,24 +255,22 @@ def _tested(rod, length, kind, values, sols: BoundaryValueSolution, options: Bou
     return with_stability(sols, _points_stability(rod, length, kind, values, *stability_inputs(sols), options), options.stability_pieces)
 
 
-#: The curves whose programs `_compile_side_by_side` started compiling.
-_compiled_side_by_side: set = set()
+def _curve_signature(rod, length, kind, values, options, mode, hints, with_bulk, guess):
+    leaves = jax.tree.leaves((rod, length, kind, values, options, hints, guess))
+    return (jax.tree.structure((rod, options, hints, guess)), mode, with_bulk, tuple((jnp.shape(a), jnp.result_type(a)) for a in leaves))
 
 
-def _compile_side_by_side(rod, length, kind, values, options, mode, hints, with_bulk, guess) -> None:
+@once_per_signature(_curve_signature)
+def _compile_side_by_side(rod, length, kind, values, options, mode, hints, with_bulk, guess) -> bool:
     """At the first curve of its kind: start compiling its solves (`_curve`) and their
     stability test (`_points_stability`, from the solves' output structure), each on a
     thread of its own (`compile_ahead`)."""
-    leaves = jax.tree.leaves((rod, length, kind, values, options, hints, guess))
-    key = (jax.tree.structure((rod, options, hints, guess)), mode, with_bulk, tuple((jnp.shape(a), jnp.result_type(a)) for a in leaves))
-    if key in _compiled_side_by_side:
-        return
     solved = compile_ahead(_curve, rod, length, kind, values, options, mode, hints, with_bulk, guess)
-    if solved is None:  # nothing compiles beside the call (traced, one core): try again next time
-        return
-    _compiled_side_by_side.add(key)
+    if solved is None:  # nothing compiles beside the call (traced, one core)
+        return False
     if options.stability_pieces > 0:
         compile_ahead(_points_stability, rod, length, kind, values, *stability_inputs(solved[2]), options)
+    return True
 
 
 # While progress is shown, a curve is solved in host-side batches of points, each one call

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._compile import compile_ahead, jit
+from .._compile import compile_ahead, jit, once_per_signature
 from .._geometry import unloaded_state
 from .._kirchhoff import wrench_growth_rate
 from .._misc import finite_scalar, float_dtype, increasing_within, is_concrete, no_gradient, replaced
@@ -214,12 +214,16 @@ def solve_with_warm_start(rod, length, start: Clamped, end: EndCondition, guess,
     return restability(rod, length, end, sol, options) if options.stability_pieces > 0 else sol
 
 
-#: The calls of `solve_with_warm_start` whose programs were compiled side by side (their
-#: options, guess, arguments' structure and saved points' shape).
-_compiled_side_by_side: set = set()
+def _solve_signature(rod, length, start, end, guess, saveat, options, guess_kind, converts: bool):
+    """What the programs of `solve_with_warm_start` are compiled for: its options, guess,
+    arguments' structure and saved points' shape."""
+    # A guess made a warm start and a warm start given (a retry's) meet the same solve.
+    form = "warm start" if converts or isinstance(guess, WarmStart) else jax.tree.structure(guess)
+    return (jax.tree.structure((rod, start, end, options)), guess_kind, form, None if saveat is None else jnp.shape(saveat), float_dtype())
 
 
-def _compile_side_by_side(rod, length, start, end, guess, saveat, options, guess_kind, converts: bool) -> None:
+@once_per_signature(_solve_signature)
+def _compile_side_by_side(rod, length, start, end, guess, saveat, options, guess_kind, converts: bool) -> bool:
     """At the first eager call of its kind: start compiling its programs -- the guess made a
     warm start, the solve without the stability test and the stability test --
     each on a thread of its own (`compile_ahead`: each traced here, from the output
@@ -227,21 +231,16 @@ def _compile_side_by_side(rod, length, start, end, guess, saveat, options, guess
     `benchmarks/bench_first_calls.py` took 4.1-4.9 s against 5.2-6.2 s with the one program
     of solve and test before (an empty compilation cache; 4.1-4.3 s against 5.6-5.9 s
     without one; fresh processes alternating)."""
-    # A guess made a warm start and a warm start given (a retry's) meet the same solve.
-    form = "warm start" if converts or isinstance(guess, WarmStart) else jax.tree.structure(guess)
-    key = (jax.tree.structure((rod, start, end, options)), guess_kind, form, None if saveat is None else jnp.shape(saveat), float_dtype())
-    if key in _compiled_side_by_side:
-        return
     if converts:
         guess = compile_ahead(as_warm_start, rod, length, start, end, guess, options, guess_kind)
-        if guess is None:  # nothing to compile beside the call (traced, one core): try again next time
-            return
+        if guess is None:  # nothing to compile beside the call (traced, one core)
+            return False
     sol = compile_ahead(solve, rod, length, start, end, guess, saveat, options, guess_kind, test_stability=False)
     if sol is None:
-        return
-    _compiled_side_by_side.add(key)
+        return False
     if options.stability_pieces > 0:
         compile_ahead(_stability_of, rod, length, end, *stability_inputs(sol), options)
+    return True
 
 
 @jit(static_argnames=("guess_kind", "test_stability"), trace_cache=True)

@@ -22,7 +22,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
-from .._compile import compile_ahead, filter_jit, jit, split_arrays
+from .._compile import compile_ahead, filter_jit, jit, once_per_signature, split_arrays
 from .._misc import is_concrete, write_atomically
 from .._progress import ProgressArgument, batch_size, check_progress, padded_batch, progress_bar, scan_in_batches
 from .._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
@@ -393,25 +393,23 @@ def _stepwise_multistart(z0s, model, param, solver, max_steps: int, report):
     return jax.tree.map(lambda *a: np.stack([np.asarray(x) for x in a]), *solved)
 
 
-#: The fits whose programs `_compile_side_by_side` has started compiling.
-_compiled_side_by_side: set = set()
+def _fit_signature(static, arrays, z0, model, param, solver):
+    return (static, tuple((a.shape, a.dtype) for a in jax.tree.leaves(arrays)), z0.shape, z0.dtype)
 
 
-def _compile_side_by_side(static, arrays, z0, model, param, solver) -> None:
+@once_per_signature(_fit_signature)
+def _compile_side_by_side(static, arrays, z0, model, param, solver) -> bool:
     """At the first stepwise fit of its kind: start compiling the model's program
     (`_split_jacobian_and_predictions`) and the solver's step programs, each on a thread of
     its own (`compile_ahead`, the steps from the output structure of the model's program),
     so that the steps compile while the model does."""
-    key = (static, tuple((a.shape, a.dtype) for a in jax.tree.leaves(arrays)), z0.shape, z0.dtype)
-    if key in _compiled_side_by_side:
-        return
     z = jax.ShapeDtypeStruct(z0.shape, z0.dtype)
     specs = compile_ahead(_split_jacobian_and_predictions, static, jax.eval_shape(param.physical, z), arrays)
-    if specs is None:  # nothing compiles beside the call (traced, one core): try again next time
-        return
-    _compiled_side_by_side.add(key)
+    if specs is None:  # nothing compiles beside the call (traced, one core)
+        return False
     J, (r, predicted) = specs
     compile_steps_ahead(solver, param.physical, z, r, J, model.moving_sigmas(predicted))
+    return True
 
 
 @filter_jit

@@ -10,6 +10,7 @@ curves compile programs of their own: those tests are slow.
 import json
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -233,21 +234,42 @@ def test_bad_curve_arguments_raise_clear_errors():
 
 @pytest.mark.heavy
 def test_a_first_curve_compiles_its_solves_and_their_test_side_by_side_once(compilations, monkeypatch):
-    """A curve's solves and their stability test are two programs (the test does not steer
-    the continuation), compiled each on a thread of its own at the first curve of a
-    signature, from the specs of the values they will be called with: the calls find those
-    compilations.  A curve of its own size (no other test solves 7 points); the test's
+    """A curve's continuation scan and the stability test of its solves are programs of
+    their own (the test does not steer the continuation), compiled each on a thread of its
+    own at the first curve of a signature, from the specs of the values they will be called
+    with (the scan's carry from `_continuation_carry`, not traced), while the call compiles
+    the scan's start: the calls find those compilations.  A curve of its own size (no other test solves 7 points); the test's
     results equal those of single solves."""
     from helixrod import _compile
 
     monkeypatch.setattr(_compile, "cores", lambda: 2)  # as on a machine of several cores
     forces = jnp.linspace(0.0, 0.03, 7)
     curve = hr.force_extension(SPRING, 2 * TURN, forces, moment=0.0, segments=4)
-    names = ("_curve", "_stability_of_points")
-    ours = sorted((thread, name) for thread, name in compilations if name in names)
-    assert ours == [(f"helixrod-compile-{name}", name) for name in names], ours
+    names = ("_continuation_points", "_stability_of_points")
+    ours = sorted((thread, name) for thread, name in compilations if name in names + ("_continuation_start",))
+    assert ours == [("MainThread", "_continuation_start")] + [(f"helixrod-compile-{name}", name) for name in names], ours
     assert bool(jnp.all(curve.ok)) and curve.solutions.stability_pieces == DEFAULT_OPTIONS.stability_pieces
     start, end = hr.axial_ends(SPRING, 2 * TURN, force=float(forces[-1]), moment=0.0)
     single = hr.solve_boundary_value(SPRING, 2 * TURN, start=start, end=end, segments=4)
     np.testing.assert_allclose(curve.stability_margin[-1], single.stability_margin, rtol=1e-6)
     assert int(curve.instability_index[-1]) == int(single.instability_index)
+
+
+def test_the_continuation_carry_specs_are_those_of_its_start():
+    """`_continuation_carry` (the specs the scan compiles ahead for, without tracing its
+    start) against the traced output of `_continuation_start`: from the default guess on
+    one segment, and on three from it, a warm start (a solution's) and a start wrench."""
+    from helixrod._bvp._response import _continuation_carry, _continuation_start
+    from helixrod._bvp._shooting import WarmStart
+    from helixrod._bvp._ends import TWEEZER
+
+    values = jnp.array([[0.01, 0.0, 0.0, 2 * TURN], [0.02, 0.0, 0.0, 2 * TURN]])
+    for segments in (1, 3):
+        options = hr.BoundaryValueOptions(segments=segments)
+        warm_start = WarmStart(jnp.zeros(3), jnp.zeros(3), jnp.zeros((segments, 3)), jnp.zeros((segments, 3, 3)))
+        for guess in (None, warm_start, (jnp.zeros(3), jnp.zeros(3)))[: 1 if segments == 1 else 3]:
+            traced = jax.eval_shape(_continuation_start, SPRING, 2 * TURN, TWEEZER, values, options, guess)
+            specs = _continuation_carry(values.dtype, segments)
+            assert jax.tree.structure(traced) == jax.tree.structure(specs)
+            for a, b in zip(jax.tree.leaves(traced), jax.tree.leaves(specs)):
+                assert (a.shape, a.dtype, a.weak_type) == (b.shape, b.dtype, b.weak_type)

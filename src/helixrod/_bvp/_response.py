@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._compile import compile_ahead, filter_jit, jit, once_per_signature
+from .._compile import committed_placement, compile_ahead, jit, once_per_signature
 from .._geometry import unloaded_observables, unloaded_state
 from .._lie import twist_angle, unwrap_near
 from .._misc import check_choice, finite_scalar, float_dtype, is_concrete, no_gradient
@@ -41,7 +41,7 @@ from .._status import RESULTS, raise_if_failed
 from ._bulk import BulkHelix, bulk_helix_at
 from ._ends import AXIAL_CONTROLS, AXIAL_OBSERVABLES, CONTROL_INDEX, LOADED, Clamped, axial_controls, axial_end_condition, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
-from ._shooting import default_warm_start
+from ._shooting import WarmStart, default_warm_start
 from ._solve import BoundaryValueSolution, fit_guess, parse_guess, solve, stability_at_points, stability_inputs, with_stability
 
 MODES = ("continuation", "independent")
@@ -185,10 +185,11 @@ def _independent_points(rod, length, kind, values, hints, options: BoundaryValue
     return jax.vmap(one)(values, hints)
 
 
-def _continuation_start(rod, length, kind, first, options: BoundaryValueOptions, guess):
-    """The carry of continuation mode before the first point `first` (4,): its warm start
-    (from `guess` where that solve succeeds, else the default), the unloaded bulk guess, and
-    the rotation near which its whole turns are counted."""
+def _continuation_start(rod, length, kind, values, options: BoundaryValueOptions, guess):
+    """The carry of continuation mode before the first point `values[0]` (4,): its warm
+    start (from `guess` where that solve succeeds, else the default), the unloaded bulk
+    guess, and the rotation near which its whole turns are counted."""
+    first = values[0]
     start, theta0, unloaded = _curve_setup(rod, length)
     first_end = axial_end_condition(rod, length, kind, first)
     guess0 = no_gradient(default_warm_start(rod, length, start, first_end, options.segments, "helix"))
@@ -197,6 +198,17 @@ def _continuation_start(rod, length, kind, first, options: BoundaryValueOptions,
         guess0 = jax.tree.map(lambda a, b: jnp.where(solved.ok, a, b), solved.warm_start(), guess0)
     bulk0 = bulk_helix_at(rod, length, jnp.asarray(CONTROL_INDEX)[kind], first, unloaded)
     return guess0, unloaded, jnp.where(bulk0.ok, bulk0.rotation, theta0)
+
+
+def _continuation_carry(dtype, segments: int, placement=None):
+    """The specs (`jax.ShapeDtypeStruct`) of `_continuation_start`'s carry, from the curve's
+    float type and `segments`, without tracing it (`tests/test_bvp_response.py` checks them
+    against its traced output), placed as its results will be."""
+    def spec(*shape):
+        return jax.ShapeDtypeStruct(shape, dtype, sharding=placement)
+
+    warm_start = WarmStart(force=spec(3), moment0=spec(3), node_position=spec(segments, 3), node_frame=spec(segments, 3, 3))
+    return warm_start, (spec(3), spec(), spec()), spec()
 
 
 def _continuation_points(rod, length, kind, values, options: BoundaryValueOptions, carry):
@@ -221,18 +233,30 @@ def _continuation_points(rod, length, kind, values, options: BoundaryValueOption
     return jax.lax.scan(step, carry, values)
 
 
-@jit(static_argnames=("mode", "with_bulk"), trace_cache=True)
+# A curve is solved by these programs: its points in independent mode, or in continuation
+# mode the start (small: compiled to run once, in 0.4-0.5 s) and the continuation scan.  In
+# one program with the scan, the start (a third of its operations: the default warm start,
+# the first bulk solve) lengthened the scan's compilation from 2.4-3.0 s to 4.1 s, and with
+# the start apart the scan compiles (`_compile_side_by_side`, from the specs of the carry)
+# while the start is traced and compiled on the calling thread.  While progress is shown,
+# the same programs solve host-side batches of points (continuation: the carry passes from
+# batch to batch).
+_independent = jit(_independent_points, static_argnames="with_bulk", trace_cache=True)
+_continuation_first = jit(_continuation_start, run_once=True, trace_cache=True)
+_continuation = jit(_continuation_points, trace_cache=True)
+
+
 def _curve(rod, length, kind, values, options: BoundaryValueOptions, mode: str, hints=None, with_bulk: bool = True, guess=None):
-    """Solve every point of a curve in one compiled program; `values` `(n, 4)` = (F, M, h,
-    Theta) per point.  `hints` `(n,)`: rotations near which to count whole turns
-    (independent mode; default the bulk prediction's); `with_bulk=False` (independent
-    mode): no bulk prediction.  `guess` (as `solve`): the start of every point (independent
-    mode) or of the first (continuation; the default guess where that solve fails).  The
-    solutions are not tested for stability: `_tested` does that, in a program of its own."""
+    """Solve every point of a curve; `values` `(n, 4)` = (F, M, h, Theta) per point.  `hints`
+    `(n,)`: rotations near which to count whole turns (independent mode; default the bulk
+    prediction's); `with_bulk=False` (independent mode): no bulk prediction.  `guess` (as
+    `solve`): the start of every point (independent mode) or of the first (continuation;
+    the default guess where that solve fails).  The solutions are not tested for
+    stability: `_tested` does that, in a program of its own."""
     if mode == "independent":
-        return _independent_points(rod, length, kind, values, hints, options, with_bulk, guess)
-    carry = _continuation_start(rod, length, kind, values[0], options, guess)
-    return _continuation_points(rod, length, kind, values, options, carry)[1]
+        return _independent(rod, length, kind, values, hints, options, with_bulk, guess)
+    carry = _continuation_first(rod, length, kind, values, options, guess)
+    return _continuation(rod, length, kind, values, options, carry)[1]
 
 
 def _stability_of_points(rod, length, kind, values, N, M0, xs, frames, result, options: BoundaryValueOptions):
@@ -262,22 +286,26 @@ def _curve_signature(rod, length, kind, values, options, mode, hints, with_bulk,
 
 @once_per_signature(_curve_signature)
 def _compile_side_by_side(rod, length, kind, values, options, mode, hints, with_bulk, guess) -> bool:
-    """At the first curve of its kind: start compiling its solves (`_curve`) and their
+    """At the first curve of its kind: start compiling its solves (`_independent`, or the
+    continuation scan `_continuation` from the specs of its start's carry) and their
     stability test (`_points_stability`, from the solves' output structure), each on a
-    thread of its own (`compile_ahead`)."""
-    solved = compile_ahead(_curve, rod, length, kind, values, options, mode, hints, with_bulk, guess)
+    thread of its own (`compile_ahead`); a continuation's start (`_continuation_first`) is
+    compiled by its call meanwhile.  The README's 50-point force-extension curve, fresh
+    processes on 2 cores alternating with the start and the scan in one program compiled
+    beside the test: first call 5.19-5.57 s against 5.67-5.87 s; in a noisier hour the
+    whole process 8.4-10.7 s against 9.8-11.7 s, its CPU time 13.0-16.3 s against
+    15.0-17.9 s."""
+    if mode == "independent":
+        solved = compile_ahead(_independent, rod, length, kind, values, hints, options, with_bulk, guess)
+    else:
+        carry = _continuation_carry(values.dtype, options.segments, committed_placement((rod, length, kind, values, options, guess)))
+        solved = compile_ahead(_continuation, rod, length, kind, values, options, carry)
+        solved = None if solved is None else solved[1]
     if solved is None:  # nothing compiles beside the call (traced, one core)
         return False
     if options.stability_pieces > 0:
         compile_ahead(_points_stability, rod, length, kind, values, *stability_inputs(solved[2]), options)
     return True
-
-
-# While progress is shown, a curve is solved in host-side batches of points, each one call
-# of the same compiled program (continuation: the carry passes from batch to batch).
-_independent_batch = filter_jit(_independent_points)
-_continuation_first = filter_jit(_continuation_start)
-_continuation_batch = filter_jit(_continuation_points)
 
 
 def _curve_in_batches(rod, length, kind, values, options, mode, hints, with_bulk, guess, report: ProgressReport):
@@ -291,13 +319,13 @@ def _curve_in_batches(rod, length, kind, values, options, mode, hints, with_bulk
 
     if mode == "independent":
         def solve_batch(_, batch):
-            return None, tested(batch[0], _independent_batch(rod, length, kind, *batch, options, with_bulk, guess))
+            return None, tested(batch[0], _independent(rod, length, kind, *batch, options, with_bulk, guess))
 
         return scan_in_batches(solve_batch, None, (values, hints), n, size, report)[1]
-    carry = _continuation_first(rod, length, kind, values[0], options, guess)
+    carry = _continuation_first(rod, length, kind, values, options, guess)
 
     def solve_batch(carry, batch):
-        carry, out = _continuation_batch(rod, length, kind, batch, options, carry)
+        carry, out = _continuation(rod, length, kind, batch, options, carry)
         return carry, tested(batch, out)
 
     return scan_in_batches(solve_batch, carry, values, n, size, report)[1]

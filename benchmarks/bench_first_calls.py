@@ -84,6 +84,15 @@ def call(i):
 rod = hr.Rod(1.0, 1.5, 0.8)
 call = lambda i: hr.solve_boundary_value(rod, 1.0, end=hr.Loaded(force=(0.0, 0.0, -3.0 - 0.1 * i)))
 """,
+    "force_extension (50 points)": """
+spring = hr.Rod(1.0, 1.0, 1 / 1.3, uhat=(0.0, 1.0, 0.3))
+call = lambda i: hr.force_extension(spring, 30.0, np.linspace(0.0, 0.05 + 0.001 * i, 50), rotation=30.0 * 1.044).extension
+""",
+    "stability_atlas (20 x 20)": """
+spring = hr.Rod(1.0, 1.0, 1 / 1.3, uhat=(0.0, 1.0, 0.3))
+kappa, tau = np.meshgrid(np.linspace(0.2, 1.5, 20), np.linspace(-1.0, 1.0, 20))
+call = lambda i: hr.stability_atlas(spring, kappa + 0.01 * i, tau, 5.0).critical_length
+""",
     "fit_stiffness (tweezer example)": """
 rod = hr.dna.load_tweezer_example().rod
 data = hr.dna.load_tweezer_curves_example().data

@@ -37,7 +37,7 @@ from .._lie import twist_angle, unwrap_near
 from .._misc import check_choice, finite_scalar, float_dtype, is_concrete, no_gradient
 from .._progress import ProgressArgument, ProgressReport, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import check_one_rod
-from .._status import RESULTS, raise_if_failed
+from .._status import RESULTS, raise_if_failed, succeeded
 from ._bulk import BulkHelix, bulk_helix_at
 from ._ends import AXIAL_CONTROLS, AXIAL_OBSERVABLES, CONTROL_INDEX, LOADED, Clamped, axial_controls, axial_end_condition, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
@@ -165,7 +165,9 @@ def _curve_setup(rod, length):
 def _observe(rod, length, kind, sol, bulk, v, hint):
     hint = jnp.where(kind == LOADED, hint, v[3])
     obs = jnp.where(sol.ok, axial_observables(rod, length, sol, hint), jnp.nan)
-    return obs, jnp.where(bulk.ok, bulk.observables, jnp.nan)
+    # Each observable an output of its own: the curve's columns come out of its program,
+    # not from slices compiled one by one at its first call.
+    return tuple(obs), tuple(jnp.where(bulk.ok, bulk.observables, jnp.nan))
 
 
 def _independent_points(rod, length, kind, values, hints, options: BoundaryValueOptions, with_bulk: bool, guess):
@@ -348,9 +350,11 @@ def _point_values(name, given, owner):
         raise ValueError(f"{owner}: the controls do not broadcast: {[a.shape for a in arrays.values()]}") from None
     if size < 1:
         raise ValueError(f"{owner}: no points")
-    columns = [jnp.broadcast_to(arrays.get(n, jnp.zeros((), dtype)), (size,)) for n in AXIAL_OBSERVABLES]
+    # Given values are stacked on the host (no programs to compile at a first call).
+    xp = np if is_concrete(*arrays.values()) else jnp
+    columns = [xp.broadcast_to(arrays.get(n, xp.zeros((), dtype)), (size,)) for n in AXIAL_OBSERVABLES]
     swept = next((n for n in name.split("-") if arrays[n].ndim == 1), name.split("-")[0])
-    return jnp.stack(columns, -1), swept
+    return jnp.asarray(xp.stack(columns, -1)), swept
 
 
 def axial_response(
@@ -458,14 +462,8 @@ def _response(
         controls=name,
         swept=swept,
         length=length,
-        force=obs[:, 0],
-        moment=obs[:, 1],
-        extension=obs[:, 2],
-        rotation=obs[:, 3],
-        bulk_force=bulk_obs[:, 0],
-        bulk_moment=bulk_obs[:, 1],
-        bulk_extension=bulk_obs[:, 2],
-        bulk_rotation=bulk_obs[:, 3],
+        **dict(zip(AXIAL_OBSERVABLES, obs)),
+        **{"bulk_" + name: column for name, column in zip(AXIAL_OBSERVABLES, bulk_obs)},
         result=sols.result,
         bulk_ok=bulk_ok,
         residual=sols.residual,
@@ -490,8 +488,9 @@ def _first_loss_of_stability(rod, length, kind, values, swept, sols, options):
     a continuation curve, by bisection: each trial solve starts from the stable side.  A
     branch point if the last unstable trial converged next to the stable side, a fold if
     it did not converge or jumped away (no equilibrium nearby beyond it)."""
-    stable = np.asarray(sols.stable)
-    lost = np.flatnonzero(stable[:-1] & np.asarray(sols.ok[1:]) & ~stable[1:])
+    ok = succeeded(sols.result)  # on the host: no one-operation programs to compile
+    stable = ok & (np.asarray(sols.instability_index) == 0)
+    lost = np.flatnonzero(stable[:-1] & ok[1:] & ~stable[1:])
     if not lost.size:
         return np.nan, "none"
     i = int(lost[0])

@@ -463,7 +463,7 @@ def _response(
         swept=swept,
         length=length,
         **dict(zip(AXIAL_OBSERVABLES, obs)),
-        **{"bulk_" + name: column for name, column in zip(AXIAL_OBSERVABLES, bulk_obs)},
+        **{"bulk_" + observable: column for observable, column in zip(AXIAL_OBSERVABLES, bulk_obs)},
         result=sols.result,
         bulk_ok=bulk_ok,
         residual=sols.residual,

@@ -64,7 +64,7 @@ class PieceVariations(eqx.Module):
 
 def _twist_and_variations(rod, dtype):
     """`f(m, dm)`: the twist $u(m)$ of the rod's inverse law and its variations along the
-    columns of `dm` `(3, k)`.  The quadratic energy's law (`Rod`) is linear, $u = \hat u +
+    columns of `dm` `(3, k)`.  The quadratic energy's law (`Rod`) is linear, $u = \\hat u +
     K^{-1}m$: one compliance matrix, formed once, serves every step (measured, a piece's
     Runge--Kutta steps: 634 -> 427 ns each, the same variations to 4e-16); any other law
     (`StrainEnergyRod`) by forward mode through it."""

@@ -293,10 +293,11 @@ def _compile_side_by_side(rod, length, kind, values, options, mode, hints, with_
     stability test (`_points_stability`, from the solves' output structure), each on a
     thread of its own (`compile_ahead`); a continuation's start (`_continuation_first`) is
     compiled by its call meanwhile.  The README's 50-point force-extension curve, fresh
-    processes on 2 cores alternating with the start and the scan in one program compiled
-    beside the test: first call 5.19-5.57 s against 5.67-5.87 s; in a noisier hour the
-    whole process 8.4-10.7 s against 9.8-11.7 s, its CPU time 13.0-16.3 s against
-    15.0-17.9 s."""
+    processes on 2 cores, three alternating pairs each: first call 5.19-5.57 s against
+    5.67-5.87 s for the code before this and the Jacobi fields' compliance matrix
+    (`_variations.py`), in a quiet hour; against the start inside the scan's program with
+    the same Jacobi fields, in a noisier hour, the whole process 8.4-10.7 s against
+    9.8-11.7 s, its CPU time 13.0-16.3 s against 15.0-17.9 s."""
     if mode == "independent":
         solved = compile_ahead(_independent, rod, length, kind, values, hints, options, with_bulk, guess)
     else:

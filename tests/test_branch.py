@@ -121,3 +121,20 @@ def test_bad_arguments_are_named():
         helixrod.follow_branch(rod, L, compressive, (1.0, 2.0), step=-1.0)
     with pytest.raises(ValueError, match="switch must be a branch point"):
         helixrod.follow_branch(rod, L, compressive, (1.0, 2.0), switch="here")
+
+
+@pytest.mark.heavy
+def test_a_first_branch_compiles_its_corrector_beside_the_first_solve(compilations, monkeypatch):
+    """The corrector step (`_point`) compiles on a thread of its own from the specs of its
+    state while the first point is solved, and the points' stability test is the program
+    that first solve compiles beside it (one compilation of each, on their threads; a test
+    of 12 pieces that no other test compiles); every point is tested."""
+    from helixrod import _compile
+
+    monkeypatch.setattr(_compile, "cores", lambda: 2)  # as on a machine of several cores
+    branch = helixrod.follow_branch(helixrod.Rod(1.0, 1.5, 0.8), L, compressive, (1.0, 3.0), stability_pieces=12)
+    names = ("_point", "_stability_where_solved")
+    ours = sorted((thread, name) for thread, name in compilations if name in names)
+    assert ours == [(f"helixrod-compile-{name}", name) for name in names], ours
+    index = np.asarray(branch.instability_index)
+    assert index[0] == 0 and index[-1] == 1 and np.all(index >= 0)  # past pi^2/4 K1, before pi^2/4 K2

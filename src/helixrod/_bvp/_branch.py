@@ -35,15 +35,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._compile import filter_jit
+from .._compile import committed_placement, compile_ahead, jit, once_per_signature
 from .._misc import check_integer, finite_scalar, float_dtype
 from .._rod import check_one_rod
+from .._status import RESULTS
 from ._bulk import length_scale, stiffness_scale
 from ._ends import AbstractEnd, Clamped, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
 from ._shooting import ShootingArgs, shooting_residual
-from ._solve import ode_tolerances, solve_boundary_value
-from ._stability import stability
+from ._solve import ode_tolerances, solve_boundary_value, stability_of_nodes
 
 #: Special points a branch reports.
 SPECIAL_KINDS = ("fold", "branch point")
@@ -146,11 +146,13 @@ def _tangent(J, previous):
     return t, sign
 
 
-@filter_jit
+@jit(static_argnames="end_at")
 def _point(z_pred, row, target, previous, problem, end_at, options):
     """Correct `z_pred` onto the branch under the constraint `row . z = target`, then the
-    tangent (oriented by `previous`), the determinant's sign, the nodes and the stability
-    there.  Never raises: read `converged`."""
+    tangent (oriented by `previous`), the determinant's sign, the nodes and the end
+    condition there (its stability is `solve_boundary_value`'s program of its own, which
+    the first point's solve compiles: `stability_of_nodes`).  Never raises: read
+    `converged`."""
     tolerance = options.atol
 
     def evaluate(z):
@@ -191,24 +193,53 @@ def _point(z_pred, row, target, previous, problem, end_at, options):
     residual = jnp.max(jnp.abs(g))
     converged = (steps > 0) & jnp.all(jnp.isfinite(z)) & jnp.isfinite(residual) & (residual <= 10 * tolerance) & jnp.all(jnp.isfinite(J))
     t, sign = _tangent(jnp.where(converged, J, 0.0), previous)
-    if options.stability_pieces > 0:
-        index, margin, _ = stability(problem.rod, problem.length, args.end, N, M0, xs, frames, options)
-    else:
-        index, margin = jnp.asarray(-1, jnp.int32), jnp.asarray(jnp.nan, z.dtype)
     return dict(
         z=z, converged=converged, steps=steps, tangent=t, sign=sign, force=N, moment0=M0, xs=xs, frames=frames,
-        end_position=ends[0][-1], end_frame=ends[1][-1], index=index, margin=margin, jacobian=J,
+        end_position=ends[0][-1], end_frame=ends[1][-1], end=args.end, jacobian=J,
     )
+
+
+@jit(static_argnames="segments")
+def _state_of(rod, length, force, moment0, parameter, segments: int):
+    """The state of a branch at a solution: its start wrench in the units of the residual
+    (`_args`' scales), the node corrections zero, the scaled parameter."""
+    ell = length_scale(rod, length)
+    k_scale = stiffness_scale(rod)
+    corrections = jnp.zeros(6 * (segments - 1), force.dtype)
+    return jnp.concatenate([force / (k_scale / ell**2), moment0 / (k_scale / ell), corrections, parameter[None]])
+
+
+def _point_signature(rod, length, start, end_at, options, k: int):
+    leaves = jax.tree.leaves((rod, length, start, options))
+    shapes = tuple((jnp.shape(a), jnp.result_type(a)) for a in leaves)
+    return jax.tree.structure((rod, start, options)), shapes, committed_placement((rod, length, start)), end_at, k, float_dtype()
+
+
+@once_per_signature(_point_signature)
+def _compile_point_ahead(rod, length, start, end_at, options, k: int) -> bool:
+    """At the first branch of its kind: start compiling the corrector step (`_point`) on a
+    thread of its own (`compile_ahead`, from the specs of its state and reference nodes)
+    while the first point is solved.  With the points' stability from the first solve's
+    program (`stability_of_nodes`) and the loop's bookkeeping in NumPy, the README's Euler
+    column (`Rod(1, 2, 0.8)`, P from 1 to 12, 39 points; fresh processes on 2 cores,
+    alternating): first call 11.4-11.6 -> 7.2-7.4 s, later calls unchanged (best of seven
+    123-125 against 124-134 ms), the same branch."""
+    placement = committed_placement((rod, length, start))
+    spec = lambda *shape: jax.ShapeDtypeStruct(shape, float_dtype(), sharding=placement)  # noqa: E731
+    state = spec(6 * k + 1)
+    problem = _Problem(rod, spec(), start, spec(k - 1, 3), spec(k - 1, 3, 3), spec())
+    return compile_ahead(_point, state, state, spec(), state, problem, end_at, options) is not None
 
 
 def _bifurcating_direction(J, tangent):
     """The unit vector of the two-dimensional kernel of `J` at a branch point orthogonal to
-    the branch's `tangent`: from the two smallest right singular vectors."""
-    _, _, vh = jnp.linalg.svd(J, full_matrices=True)
+    the branch's `tangent`: from the two smallest right singular vectors (NumPy, on the
+    host, as the rest of the branch's bookkeeping)."""
+    _, _, vh = np.linalg.svd(np.asarray(J), full_matrices=True)
     candidates = vh[-2:]
     orthogonal = candidates - (candidates @ tangent)[:, None] * tangent[None]
-    best = orthogonal[jnp.argmax(jnp.linalg.norm(orthogonal, axis=1))]
-    return best / jnp.linalg.norm(best)
+    best = orthogonal[np.argmax(np.linalg.norm(orthogonal, axis=1))]
+    return best / np.linalg.norm(best)
 
 
 def follow_branch(
@@ -293,32 +324,49 @@ def follow_branch(
     def problem_at(xs, frames):
         return _Problem(rod, jnp.asarray(length, dtype), start, xs[1:], frames[1:], jnp.asarray(scale, dtype))
 
+    # The loop's bookkeeping runs on the host, in NumPy, on each step's results: in jnp
+    # each small operation was a program compiled at the first call (~80 of them, ~1.4 s).
+    def solve_point(z_pred, row, target, previous, problem):
+        record = _point(z_pred, row, np.asarray(target, dtype), previous, problem, end, options)
+        # What the loop reads, on the host; the rest stays put until a point is kept.
+        host = jax.device_get({name: record[name] for name in ("z", "tangent", "sign", "steps", "converged")})
+        index, margin = np.asarray(-1, np.int32), np.asarray(np.nan, dtype)
+        if options.stability_pieces > 0 and host["converged"]:
+            tested = stability_of_nodes(
+                rod, problem.length, record["end"], record["force"], record["moment0"], record["xs"], record["frames"],
+                RESULTS.successful, options,
+            )
+            index, margin = jax.device_get(tested[:2])
+        return dict(record, **host, index=index, margin=margin)
+
+    _compile_point_ahead(rod, jnp.asarray(length, dtype), start, end, options, k)
     if switch is None:
         sol = solve_boundary_value(rod, length, start=start, end=probe, guess=guess, options=options)
         if sol.segments != k:
             raise ValueError(f"{owner}: the first solve used {sol.segments} segments; give segments=")
-        args = _args(problem_at(sol.node_position, sol.node_frame), end, jnp.asarray(first, dtype), options)
-        z = jnp.concatenate([sol.force / args.scales[1], sol.moment0 / args.scales[2], jnp.zeros(6 * (k - 1)), jnp.asarray([first / scale])])
-        heading = jnp.zeros_like(z).at[-1].set(np.sign(last - first))
+        z = np.asarray(_state_of(rod, jnp.asarray(length, dtype), sol.force, sol.moment0, jnp.asarray(first / scale, dtype), k))
+        heading = np.zeros_like(z)
+        heading[-1] = np.sign(last - first)
         problem = problem_at(sol.node_position, sol.node_frame)
     else:
         if not isinstance(switch, SpecialPoint) or switch.kind != "branch point":
             raise ValueError(f"{owner}: switch must be a branch point of a Branch (Branch.points('branch point'))")
         if switch.state.shape[0] != 6 * k + 1:
             raise ValueError(f"{owner}: switch comes from a branch of another number of segments")
-        z, heading = switch.state, float(direction) * switch.direction
+        z, heading = np.array(switch.state, dtype), float(direction) * np.asarray(switch.direction, dtype)
         problem = problem_at(switch.node_position, switch.node_frame)
         problem = eqx.tree_at(lambda p: p.scale, problem, jnp.asarray(scale, dtype))
         # The state is relative to the nodes of the branch it was found on; restart from its own.
-        z = z.at[6:-1].set(0.0).at[-1].set(float(switch.parameter) / scale)
+        z[6:-1] = 0.0
+        z[-1] = float(switch.parameter) / scale
 
-    here = _point(z, heading, heading @ z, heading, problem, end, options)
+    here = solve_point(z, heading, heading @ z, heading, problem)
     if not bool(here["converged"]):
         raise ValueError(f"{owner}: the first point is not an equilibrium (residual above tolerance)")
     if switch is not None:
         # At the branch point the tangent and the determinant's sign are not defined: leave
         # along the bifurcating direction, and compare signs from the next point on.
-        here = dict(here, tangent=heading, sign=jnp.zeros(()))
+        here = dict(here, tangent=heading, sign=np.zeros((), dtype))
     records = [here]
     arclength = [0.0]
     special = []
@@ -330,12 +378,14 @@ def follow_branch(
         if k == 1:
             return record, problem
         problem = problem_at(record["xs"], record["frames"])
-        return dict(record, z=record["z"].at[6:-1].set(0.0)), problem
+        z = record["z"].copy()
+        z[6:-1] = 0.0
+        return dict(record, z=z), problem
 
     def corrected(record, problem, distance):
         z_pred = record["z"] + distance * record["tangent"]
         t = record["tangent"]
-        return _point(z_pred, t, t @ z_pred, t, problem, end, options)
+        return solve_point(z_pred, t, t @ z_pred, t, problem)
 
     def locate(record, problem, distance, test):
         a, b = 0.0, distance
@@ -369,9 +419,9 @@ def follow_branch(
             bound = hi if lam > hi else lo
             secant = new["z"] - current["z"]
             fraction = (bound / scale - float(current["z"][-1])) / float(secant[-1])
-            row = jnp.zeros_like(secant).at[-1].set(1.0)
-            target = jnp.asarray(bound / scale, secant.dtype)  # an array: a Python float would be static (a new compilation)
-            new = _point(current["z"] + fraction * secant, row, target, current["tangent"], problem, end, options)
+            row = np.zeros_like(secant)
+            row[-1] = 1.0
+            new = solve_point(current["z"] + fraction * secant, row, bound / scale, current["tangent"], problem)
             if not bool(new["converged"]):
                 message = f"could not land on the end of the interval at {bound:.6g}"
                 break
@@ -381,7 +431,7 @@ def follow_branch(
         # variations in equal steps, 1e-8 accurate; the adaptive Jacobian of the test
         # functions is not, on straight pieces), else by the test function.
         by_index = int(new["index"]) != int(current["index"]) and min(int(new["index"]), int(current["index"])) >= 0
-        step_taken = float(jnp.linalg.norm(new["z"] - current["z"]))
+        step_taken = float(np.linalg.norm(new["z"] - current["z"]))
         for kind, found in (("fold", fold), ("branch point", crossed and not fold)):
             if not found:
                 continue
@@ -397,12 +447,12 @@ def follow_branch(
             if point is None:
                 continue
             direction_out = (
-                _bifurcating_direction(point["jacobian"], point["tangent"]) if kind == "branch point" else jnp.zeros_like(point["z"])
+                _bifurcating_direction(point["jacobian"], point["tangent"]) if kind == "branch point" else np.zeros_like(point["z"])
             )
             special.append(SpecialPoint(
-                kind=kind, parameter=point["z"][-1] * scale, after=len(records) - 1, force=point["force"],
-                moment0=point["moment0"], state=point["z"], direction=direction_out, node_position=point["xs"],
-                node_frame=point["frames"],
+                kind=kind, parameter=jnp.asarray(point["z"][-1] * scale), after=len(records) - 1,
+                force=jnp.asarray(point["force"]), moment0=jnp.asarray(point["moment0"]), state=jnp.asarray(point["z"]),
+                direction=jnp.asarray(direction_out), node_position=jnp.asarray(point["xs"]), node_frame=jnp.asarray(point["frames"]),
             ))
         new, problem = rebased(new, problem)
         records.append(new)
@@ -413,12 +463,12 @@ def follow_branch(
         if int(new["steps"]) <= 4:
             ds = min(1.5 * ds, max_step)
 
-    stack = lambda name: jnp.stack([r[name] for r in records])  # noqa: E731
-    frames0 = start.frame
+    stack = lambda name: np.stack([np.asarray(r[name]) for r in records])  # noqa: E731
+    frames0 = np.asarray(start.frame)
     force, moment0 = stack("force"), stack("moment0")
-    return Branch(
+    fields = dict(
         parameter=stack("z")[:, -1] * scale,
-        arclength=jnp.asarray(arclength, dtype),
+        arclength=np.asarray(arclength, dtype),
         force=force,
         moment0=moment0,
         n0=force @ frames0,
@@ -429,6 +479,5 @@ def follow_branch(
         node_frame=stack("frames"),
         instability_index=stack("index"),
         stability_margin=stack("margin"),
-        special=tuple(special),
-        message=message,
     )
+    return Branch(**{name: jnp.asarray(value) for name, value in fields.items()}, special=tuple(special), message=message)

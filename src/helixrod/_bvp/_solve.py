@@ -189,6 +189,14 @@ def stability_at_points(rod, length, ends: EndCondition, N, M0, xs, frames, resu
 _stability_of = jit(_stability_where_solved, trace_cache=True)
 
 
+def stability_of_nodes(rod, length, end: EndCondition, N, M0, xs, frames, result, options: BoundaryValueOptions):
+    """`(index, margin, push)` of the equilibrium with lab start wrench (`N`, `M0`) and
+    shooting nodes `xs`, `frames` (`stability_inputs`) -- undefined where `result` is not
+    a success -- by the program that `solve_boundary_value` compiles beside its solve (a
+    caller with the same types and options finds it compiled)."""
+    return _stability_of(rod, length, end, N, M0, xs, frames, result, options)
+
+
 def restability(rod, length, end: EndCondition, sol, options: BoundaryValueOptions):
     """`sol` with its stability tested on `options.stability_pieces` pieces.  Measured per
     call (the default cantilever): the program's dispatch 12 us with these arguments against

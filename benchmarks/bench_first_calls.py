@@ -93,6 +93,11 @@ spring = hr.Rod(1.0, 1.0, 1 / 1.3, uhat=(0.0, 1.0, 0.3))
 kappa, tau = np.meshgrid(np.linspace(0.2, 1.5, 20), np.linspace(-1.0, 1.0, 20))
 call = lambda i: hr.stability_atlas(spring, kappa + 0.01 * i, tau, 5.0).critical_length
 """,
+    "follow_branch (Euler column)": """
+rod = hr.Rod(1.0, 2.0, 0.8)
+load = lambda P: hr.Loaded(force=jnp.stack([0.0 * P, 0.0 * P, -P]))
+call = lambda i: hr.follow_branch(rod, 1.0, load, (1.0, 12.0 + 0.1 * i)).parameter
+""",
     "fit_stiffness (tweezer example)": """
 rod = hr.dna.load_tweezer_example().rod
 data = hr.dna.load_tweezer_curves_example().data

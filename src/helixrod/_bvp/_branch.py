@@ -322,7 +322,9 @@ def follow_branch(
     k = options.segments
 
     def problem_at(xs, frames):
-        return _Problem(rod, jnp.asarray(length, dtype), start, xs[1:], frames[1:], jnp.asarray(scale, dtype))
+        # The nodes as host arrays: uncommitted, as the specs `_point` was compiled ahead
+        # for (a solve's results are committed where the trace cache ran its program).
+        return _Problem(rod, jnp.asarray(length, dtype), start, np.asarray(xs)[1:], np.asarray(frames)[1:], jnp.asarray(scale, dtype))
 
     # The loop's bookkeeping runs on the host, in NumPy, on each step's results: in jnp
     # each small operation was a program compiled at the first call (~80 of them, ~1.4 s).

@@ -39,7 +39,7 @@ from .._compile import committed_placement, compile_ahead, jit, once_per_signatu
 from .._misc import check_integer, finite_scalar, float_dtype
 from .._rod import check_one_rod
 from .._status import RESULTS
-from ._bulk import length_scale, stiffness_scale
+from ._bulk import residual_scales
 from ._ends import AbstractEnd, Clamped, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
 from ._shooting import ShootingArgs, shooting_residual
@@ -125,9 +125,7 @@ class _Problem(eqx.Module):
 
 def _args(problem: _Problem, end_at, lam, options: BoundaryValueOptions) -> ShootingArgs:
     rod, length = problem.rod, problem.length
-    ell = length_scale(rod, length)
-    k_scale = stiffness_scale(rod)
-    scales = jnp.stack([ell, k_scale / ell**2, k_scale / ell])
+    scales = residual_scales(rod, length)
     # The flows' Jacobian (`_flows`) is integrated at the ODE tolerance itself: it locates
     # folds and branch points.
     ode_tol = ode_tolerances(options, problem.length.dtype)
@@ -202,11 +200,10 @@ def _point(z_pred, row, target, previous, problem, end_at, options):
 @jit(static_argnames="segments")
 def _state_of(rod, length, force, moment0, parameter, segments: int):
     """The state of a branch at a solution: its start wrench in the units of the residual
-    (`_args`' scales), the node corrections zero, the scaled parameter."""
-    ell = length_scale(rod, length)
-    k_scale = stiffness_scale(rod)
+    (`residual_scales`), the node corrections zero, the scaled parameter."""
+    _, force_unit, moment_unit = residual_scales(rod, length)
     corrections = jnp.zeros(6 * (segments - 1), force.dtype)
-    return jnp.concatenate([force / (k_scale / ell**2), moment0 / (k_scale / ell), corrections, parameter[None]])
+    return jnp.concatenate([force / force_unit, moment0 / moment_unit, corrections, parameter[None]])
 
 
 def _point_signature(rod, length, start, end_at, options, k: int):

@@ -47,6 +47,14 @@ def length_scale(rod, length) -> Array:
     return jnp.minimum(length, 1.0 / jnp.where(norm > 0, norm, 1.0 / length))
 
 
+def residual_scales(rod, length) -> Array:
+    """$(\\ell, \\bar K/\\ell^2, \\bar K/\\ell)$ (`length_scale`, `stiffness_scale`): the units of
+    length, force and moment in which the shooting residual is measured (`ShootingArgs.scales`)."""
+    ell = length_scale(rod, length)
+    k_scale = stiffness_scale(rod)
+    return jnp.stack([ell, k_scale / ell**2, k_scale / ell])
+
+
 class BulkHelix(eqx.Module):
     """The uniform helix under two axial controls (`bulk_helix`): twist `u` `(3,)` (director
     frame), multipliers `mu1`, `mu2` ($m = \\mu_1 u + \\mu_2 e_3$, $n = \\mu_2 u$), the axial

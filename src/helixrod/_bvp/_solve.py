@@ -38,7 +38,7 @@ from .._kirchhoff import wrench_growth_rate
 from .._misc import finite_scalar, float_dtype, increasing_within, is_concrete, no_gradient, replaced
 from .._rod import check_one_rod
 from .._status import RESULTS, promote, raise_if_failed, succeeded
-from ._bulk import length_scale, stiffness_scale
+from ._bulk import residual_scales
 from ._ends import CLAMPED, LOADED, AbstractEnd, Clamped, EndCondition, end_condition, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
 from ._stability import PIECE_RESOLUTION, stability, stiffness_range
@@ -277,9 +277,7 @@ def solve(
     start = jax.tree.map(lambda a, b: jnp.where(valid, a, b), start, harmless_start)
     end = jax.tree.map(lambda a, b: jnp.where(valid, a, b), end, end_condition(LOADED, point=jnp.zeros(3, dtype)))
     k = options.segments
-    ell = length_scale(rod, length)
-    k_scale = stiffness_scale(rod)
-    scales = jnp.stack([ell, k_scale / ell**2, k_scale / ell])
+    scales = residual_scales(rod, length)
     ode_tol = ode_tolerances(options, dtype)
 
     y0, ref_x, ref_frame = no_gradient(initial(rod, length, start, end, guess, options, guess_kind, scales, ode_tol))

@@ -128,11 +128,11 @@ def test_a_first_branch_compiles_its_corrector_beside_the_first_solve(compilatio
     """The corrector step (`_point`) compiles on a thread of its own from the specs of its
     state while the first point is solved, and the points' stability test is the program
     that first solve compiles beside it (one compilation of each, on their threads; a test
-    of 12 pieces that no other test compiles); every point is tested."""
+    of 10 pieces that no other test compiles); every point is tested."""
     from helixrod import _compile
 
     monkeypatch.setattr(_compile, "cores", lambda: 2)  # as on a machine of several cores
-    branch = helixrod.follow_branch(helixrod.Rod(1.0, 1.5, 0.8), L, compressive, (1.0, 3.0), stability_pieces=12)
+    branch = helixrod.follow_branch(helixrod.Rod(1.0, 1.5, 0.8), L, compressive, (1.0, 3.0), stability_pieces=10)
     names = ("_point", "_stability_where_solved")
     ours = sorted((thread, name) for thread, name in compilations if name in names)
     assert ours == [(f"helixrod-compile-{name}", name) for name in names], ours

@@ -39,7 +39,7 @@ from .._progress import ProgressArgument, ProgressReport, batch_size, check_prog
 from .._rod import check_one_rod
 from .._status import RESULTS, raise_if_failed, succeeded
 from ._bulk import BulkHelix, bulk_helix_at
-from ._ends import AXIAL_CONTROLS, AXIAL_OBSERVABLES, CONTROL_INDEX, LOADED, Clamped, axial_controls, axial_end_condition, unloaded_clamp
+from ._ends import AXIAL_CONTROLS, AXIAL_OBSERVABLES, CONTROL_INDEX, LOADED, axial_controls, axial_end_condition, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
 from ._shooting import WarmStart, default_warm_start
 from ._solve import BoundaryValueSolution, fit_guess, parse_guess, solve, stability_at_points, stability_inputs, with_stability
@@ -156,7 +156,7 @@ def _no_bulk(dtype) -> BulkHelix:
 
 def _curve_setup(rod, length):
     """The clamped start, the unloaded end rotation and the unloaded bulk guess of a curve."""
-    start = jax.tree.map(jnp.asarray, Clamped(*unloaded_state(no_gradient(rod), 0.0)))
+    start = unloaded_clamp(no_gradient(rod))
     _, theta0 = unloaded_observables(rod, length)
     unloaded = (jnp.asarray(rod.uhat), jnp.zeros(()), jnp.zeros(()))
     return start, theta0, unloaded

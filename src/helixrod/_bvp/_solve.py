@@ -33,7 +33,6 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._compile import compile_ahead, jit, once_per_signature
-from .._geometry import unloaded_state
 from .._kirchhoff import wrench_growth_rate
 from .._misc import finite_scalar, float_dtype, increasing_within, is_concrete, no_gradient, replaced
 from .._rod import check_one_rod
@@ -273,7 +272,7 @@ def solve(
         valid = valid & jnp.all(jnp.isfinite(guess.force)) & jnp.all(jnp.isfinite(guess.moment0))
     # Invalid input (under vmap): solve a harmless problem, return NaN.
     length = jnp.where(valid, length, 1.0)
-    harmless_start = Clamped(*unloaded_state(no_gradient(rod), 0.0))
+    harmless_start = unloaded_clamp(no_gradient(rod))
     start = jax.tree.map(lambda a, b: jnp.where(valid, a, b), start, harmless_start)
     end = jax.tree.map(lambda a, b: jnp.where(valid, a, b), end, end_condition(LOADED, point=jnp.zeros(3, dtype)))
     k = options.segments

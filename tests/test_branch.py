@@ -138,3 +138,10 @@ def test_a_first_branch_compiles_its_corrector_beside_the_first_solve(compilatio
     assert ours == [(f"helixrod-compile-{name}", name) for name in names], ours
     index = np.asarray(branch.instability_index)
     assert index[0] == 0 and index[-1] == 1 and np.all(index >= 0)  # past pi^2/4 K1, before pi^2/4 K2
+    # The load named by its trace: a new function of the same load compiles nothing again.
+    compilations.clear()
+    again = helixrod.follow_branch(
+        helixrod.Rod(1.0, 1.5, 0.8), L, lambda P: compressive(P), (1.0, 2.0), stability_pieces=10
+    )
+    assert [name for _, name in compilations if name in names] == []
+    assert np.all(np.asarray(again.instability_index) == 0)

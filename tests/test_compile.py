@@ -290,3 +290,30 @@ def test_nothing_is_compiled_ahead_where_the_call_would_not_compile_it(monkeypat
 def test_cores_are_those_the_process_may_run_on():
     expected = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     assert _compile.cores() == expected >= 1
+
+
+def test_a_traced_function_is_named_by_what_it_computes():
+    scalar = jax.ShapeDtypeStruct((), jnp.float64)
+    named = lambda f: _compile.TracedFunction(f, scalar)  # noqa: E731
+    third, next_up = 1.0 / 3.0, float(np.nextafter(1.0 / 3.0, 1.0))
+    table, other_table = jnp.asarray([1.0, 2.0]), jnp.asarray([1.0, 2.5])
+    same = named(lambda p: jnp.sin(p) * third), named(lambda p: jnp.sin(p) * third)
+    assert same[0] == same[1] and hash(same[0]) == hash(same[1]) and repr(same[0]) == repr(same[1])
+    assert "0x" not in repr(same[0])
+    assert named(lambda p: jnp.sin(p) * third) != named(lambda p: jnp.sin(p) * next_up)  # one ulp
+    assert named(lambda p: p * table) != named(lambda p: p * other_table)  # closed-over arrays
+    assert named(lambda p: jnp.stack([p, p])) != named(lambda p: (p, p))  # output structure
+    assert _compile.TracedFunction(jnp.sin, jax.ShapeDtypeStruct((2,), jnp.float64)) != named(jnp.sin)  # shapes
+    # What the text cannot name: a custom derivative rule, a host callback, a failing trace.
+    doubled = jax.custom_jvp(lambda p: 2.0 * p)
+    doubled.defjvp(lambda primals, tangents: (2.0 * primals[0], 2.0 * tangents[0]))
+    callback = lambda p: jax.pure_callback(np.cos, scalar, p)  # noqa: E731
+    broken = lambda p: p.no_such_attribute  # noqa: E731
+    nested = lambda p: jax.lax.cond(p > 0, doubled, jnp.sin, p)  # noqa: E731
+    for fun in (doubled, callback, broken, nested):
+        a, b = named(fun), named(fun)
+        assert a.digest is None and a == b and a != named(lambda p: fun(p)) and repr(a) == repr(fun)
+    # Nested programs and branches without such rules are named.
+    assert named(lambda p: jax.jit(jnp.sin)(p)).digest is not None
+    assert named(lambda p: jax.lax.cond(p > 0, jnp.sin, jnp.cos, p)).digest is not None
+    assert float(same[0](0.5)) == np.sin(0.5) / 3.0

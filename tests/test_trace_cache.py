@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from helixrod import _compile, _trace_cache
-from helixrod._compile import compile_ahead, filter_jit, jit, split_arrays
+from helixrod._compile import TracedFunction, compile_ahead, filter_jit, jit, split_arrays
 
 traces = []
 
@@ -51,6 +51,12 @@ def applied(function, x):
 @jit(trace_cache=True)
 def with_callback(x):
     return jax.pure_callback(lambda v: np.asarray(v) + 1.0, jax.ShapeDtypeStruct(x.shape, x.dtype), x)
+
+
+@jit(static_argnames="function", trace_cache=True)
+def applied_by_trace(function, x):
+    traces.append("applied_by_trace")
+    return function(x)
 
 
 def _halves(static, arrays):
@@ -161,6 +167,34 @@ def test_a_filter_jit_program_keys_its_non_array_leaves(exported_programs):
     later = filtered(x + 1.0, {"scale": jnp.asarray(3.0), "offset": 1.0}, power=3)
     np.testing.assert_array_equal(np.asarray(later), 3.0 * np.arange(1.0, 4.0) ** 3 + 1.0)
     assert len(traces) == 2 and len(list(exported_programs.glob("*.export"))) == 2
+
+
+def test_a_function_named_by_its_trace_is_kept_for_a_later_process(exported_programs):
+    # A static function argument (`follow_branch`'s load) as a `TracedFunction`: a new
+    # lambda with the same body is the same program, in this process and the next.
+    x = jnp.arange(3.0)
+    scalar = jax.ShapeDtypeStruct((3,), x.dtype)
+    offset = jnp.asarray([1.0, 2.0, 3.0])
+    traces.clear()
+    first = applied_by_trace(TracedFunction(lambda v: 2.0 * v + offset, scalar), x)
+    np.testing.assert_array_equal(np.asarray(first), 2.0 * np.arange(3.0) + [1.0, 2.0, 3.0])
+    applied_by_trace(TracedFunction(lambda v: 2.0 * v + offset, scalar), x + 1.0)
+    assert traces == ["applied_by_trace"] and len(list(exported_programs.glob("*.export"))) == 1
+    _new_process()
+    loaded = _trace_cache.counts["loaded"]
+    later = applied_by_trace(TracedFunction(lambda v: 2.0 * v + offset, scalar), x + 2.0)
+    np.testing.assert_array_equal(np.asarray(later), 2.0 * np.arange(2.0, 5.0) + [1.0, 2.0, 3.0])
+    assert traces == ["applied_by_trace"] and _trace_cache.counts["loaded"] == loaded + 1
+    # Another constant is another program.
+    other = applied_by_trace(TracedFunction(lambda v: 2.0 * v + offset + 1.0, scalar), x)
+    np.testing.assert_array_equal(np.asarray(other), 2.0 * np.arange(3.0) + [2.0, 3.0, 4.0])
+    assert len(list(exported_programs.glob("*.export"))) == 2
+    # A custom derivative rule prints by its name only: the function is named by identity,
+    # its repr keeps the cache away.
+    doubled = jax.custom_jvp(lambda v: 2.0 * v)
+    doubled.defjvp(lambda primals, tangents: (2.0 * primals[0], 2.0 * tangents[0]))
+    np.testing.assert_array_equal(np.asarray(applied_by_trace(TracedFunction(doubled, scalar), x)), 2.0 * np.arange(3.0))
+    assert len(list(exported_programs.glob("*.export"))) == 2
 
 
 def test_a_damaged_file_is_exported_again(exported_programs):

@@ -74,6 +74,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import gc
+import hashlib
 import inspect
 import os
 import threading
@@ -81,6 +82,7 @@ from importlib import metadata
 
 import equinox as eqx
 import jax
+import numpy as np
 
 from . import _trace_cache
 
@@ -425,3 +427,76 @@ def split_arrays(tree):
     call instead; measured on a tweezer fit's model and on its solver step, ~0.2 ms a call."""
     arrays, static = eqx.partition(tree, eqx.is_array)
     return arrays, StaticHalf(static)
+
+
+class TracedFunction:
+    """A function of arrays as a static argument of a program (`jit`'s `static_argnames`),
+    named by what it traces to: its jaxpr at `specs` (`jax.ShapeDtypeStruct`s of its
+    arguments), the structure of its output, and the values of the arrays it closes over.
+
+    A plain function is a static argument by identity: a new `lambda` with the same body at
+    each call compiles the program again, and no text names it the same way in two
+    processes, so the trace cache (`_trace_cache.py`) cannot keep a program that calls it.
+    Two functions that trace to the same jaxpr with the same constants compute the same
+    thing on those arguments, so the program traced with one serves the other: this
+    object hashes, compares and prints (`repr`, the trace cache's key) by a digest of that
+    trace.  Where the trace cannot be named that way -- it fails, or its text holds an object
+    address (a custom derivative rule, a host callback) -- it falls back to the function's
+    identity, and its `repr` (the function's own) keeps the trace cache away."""
+
+    def __init__(self, fun, *specs):
+        self.fun = fun
+        self.digest = _trace_digest(fun, specs)
+
+    def __call__(self, *args):
+        return self.fun(*args)
+
+    def __hash__(self):
+        return hash(self.digest) if self.digest is not None else hash(self.fun)
+
+    def __eq__(self, other):
+        if not isinstance(other, TracedFunction):
+            return NotImplemented
+        if self.digest is None or other.digest is None:
+            return self.fun is other.fun
+        return self.digest == other.digest
+
+    def __repr__(self):
+        return f"TracedFunction({self.digest})" if self.digest is not None else repr(self.fun)
+
+
+def _trace_digest(fun, specs) -> str | None:
+    try:
+        closed, out_shapes = jax.make_jaxpr(fun, return_shape=True)(*specs)
+    except Exception:  # noqa: BLE001 - the program's own trace raises it where it matters
+        return None
+    text = f"{closed.jaxpr}\n{jax.tree.structure(out_shapes)}\n{[(s.shape, s.dtype.name) for s in specs]}"
+    if " at 0x" in text or not _named_by_text(closed.jaxpr):
+        return None
+    digest = hashlib.sha256(text.encode())
+    for constant in closed.consts:
+        constant = np.asarray(constant)
+        digest.update(f"{constant.shape}{constant.dtype.name}".encode())
+        digest.update(np.ascontiguousarray(constant).tobytes())
+    return digest.hexdigest()
+
+
+# A `jit` inside the function holds its mesh, which is callable and named by its text.
+_MESHES = (jax.sharding.Mesh, jax.sharding.AbstractMesh)
+
+
+def _named_by_text(jaxpr) -> bool:
+    """Whether the text of `jaxpr` says all it computes: no operation holds a function (a
+    custom derivative rule, printed by its name only; a host callback), also in the jaxprs
+    nested in its operations."""
+    stack = [jaxpr]
+    while stack:
+        for equation in stack.pop().eqns:
+            for value in equation.params.values():
+                for item in value if isinstance(value, (tuple, list)) else (value,):
+                    inner = getattr(item, "jaxpr", item)  # a closed jaxpr's own
+                    if hasattr(inner, "eqns"):
+                        stack.append(inner)
+                    elif (callable(item) or hasattr(item, "call_wrapped")) and not isinstance(item, _MESHES):
+                        return False
+    return True

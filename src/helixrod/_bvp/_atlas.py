@@ -404,18 +404,19 @@ def _critical_points(rod, n, m, max_length, bisections: int, chunk_size: int):
     return _in_whole_chunks(lambda n, m: _critical_point(rod, n, m, max_length, bisections), n, m, chunk_size)
 
 
-@filter_jit
-def _atlas(rod, kappa, tau, length, pieces: int, chunk_size: int):
-    valid, stable, n, m = _registers(rod, kappa, tau)
-    index, margin = _indices(rod, n, m, length, pieces, chunk_size)
-    return valid, stable, index, margin, n, m
+# Three programs.  The registers hold the register kernel's custom call, which `jax.export`
+# refuses, so the tests are programs of their own that the trace cache keeps: the warm first
+# call of the 20 x 20 atlas of `benchmarks/bench_first_calls.py` no longer traces them
+# (~2.5 s of Python on 2 cores).  The critical lengths apart from the index: compiled into
+# one program beside the index's batched eigh, they deadlocked XLA's CPU thread pool
+# (jaxlib 0.10.2, 2 cores, concurrency-optimised scheduler) on a 10 x 10 grid; apart,
+# neither does.  So no LAPACK call in the critical lengths either.
+_registers_of = filter_jit(_registers)
+_indices_of = jit(_indices, static_argnames=("pieces", "chunk_size"), trace_cache=True)
 
 
-@jit(static_argnames=("bisections", "chunk_size"))
+@jit(static_argnames=("bisections", "chunk_size"), trace_cache=True)
 def _critical_lengths(rod, n, m, max_length, bisections: int, chunk_size: int):
-    # A program of its own: compiled into `_atlas`, beside the batched eigh of the index, it
-    # deadlocked XLA's CPU thread pool (jaxlib 0.10.2, 2 cores, concurrency-optimised
-    # scheduler) on a 10 x 10 grid; apart, neither does.  So no LAPACK call in here either.
     return _critical_points(rod, n, m, max_length, bisections, chunk_size)
 
 
@@ -428,20 +429,13 @@ def _atlas_signature(rod, grid, max_length, bisections: int, chunk_size: int):
 @once_per_signature(_atlas_signature)
 def _compile_side_by_side(rod, grid, max_length, bisections: int, chunk_size: int) -> bool:
     """At the first atlas of its kind: start compiling the critical lengths' program on a
-    thread of its own (`compile_ahead`, for the body wrenches that `_atlas` will give it
+    thread of its own (`compile_ahead`, for the body wrenches that `_registers_of` will give it
     from the arguments `grid` of its call, placed as they place them), while the index
     program is traced, compiled and run.  Measured on the
     20 x 20 atlas of `benchmarks/bench_first_calls.py` (2 cores, fresh processes
     alternating): first call 4.5-5.3 s (median 4.9) against 5.6-7.3 s (median 6.1)."""
     wrenches = jax.ShapeDtypeStruct((4 * grid[1].size, 3), max_length.dtype, sharding=committed_placement((rod, grid)))
     return compile_ahead(_critical_lengths, rod, wrenches, wrenches, max_length, bisections, chunk_size) is not None
-
-
-# While progress is shown, the helices are tested in host-side batches of these programs
-# (the same two programs apart, for the same reason).
-_registers_jit = filter_jit(_registers)
-_indices_batch = filter_jit(_indices)
-_critical_batch = filter_jit(_critical_points)
 
 
 @jit
@@ -479,16 +473,17 @@ def _test_helices(rod, kappa, tau, length, max_length, critical_length: bool, bi
     if not report.shown:
         if critical_length:
             _compile_side_by_side(rod, (kappa, tau, length), max_length, bisections, chunk_size)
-        valid, pointwise, index, margin, n, m = _atlas(rod, kappa, tau, length, pieces, chunk_size)
+        valid, pointwise, n, m = _registers_of(rod, kappa, tau)
+        index, margin = _indices_of(rod, n, m, length, pieces, chunk_size)
         if critical_length:
             critical, kind, mode = _critical_lengths(rod, n, m, max_length, bisections, chunk_size)
     else:
-        valid, pointwise, n, m = _registers_jit(rod, kappa, tau)
+        valid, pointwise, n, m = _registers_of(rod, kappa, tau)
 
         def test(_, wrench):
-            out = _indices_batch(rod, *wrench, length, pieces, chunk_size)
+            out = _indices_of(rod, *wrench, length, pieces, chunk_size)
             if critical_length:
-                out += _critical_batch(rod, *wrench, max_length, bisections, chunk_size)
+                out += _critical_lengths(rod, *wrench, max_length, bisections, chunk_size)
             return None, out
 
         chunks = -(-n.shape[0] // chunk_size)

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._compile import committed_placement, compile_ahead, jit, once_per_signature
+from .._compile import TracedFunction, committed_placement, compile_ahead, jit, once_per_signature
 from .._misc import check_integer, finite_scalar, float_dtype
 from .._rod import check_one_rod
 from .._status import RESULTS
@@ -144,7 +144,7 @@ def _tangent(J, previous):
     return t, sign
 
 
-@jit(static_argnames="end_at")
+@jit(static_argnames="end_at", trace_cache=True)
 def _point(z_pred, row, target, previous, problem, end_at, options):
     """Correct `z_pred` onto the branch under the constraint `row . z = target`, then the
     tangent (oriented by `previous`), the determinant's sign, the nodes and the end
@@ -314,6 +314,10 @@ def follow_branch(
     if not isinstance(probe, AbstractEnd):
         raise ValueError(f"{owner}: end({first}) must return Clamped, Loaded or Tweezer, got {type(probe).__name__}")
     dtype = float_dtype()
+    # Named by its trace: a new lambda of the same load finds the compiled corrector, and
+    # the trace cache keeps it for a later process (its warm first call: `_point` traced
+    # and lowered in ~1.6 s of the 2.6 s, measured on 2 cores).
+    end_at = TracedFunction(end, jax.ShapeDtypeStruct((), dtype))
     scale = abs(last - first)
     lo, hi = min(first, last), max(first, last)
     k = options.segments
@@ -326,7 +330,7 @@ def follow_branch(
     # The loop's bookkeeping runs on the host, in NumPy, on each step's results: in jnp
     # each small operation was a program compiled at the first call (~80 of them, ~1.4 s).
     def solve_point(z_pred, row, target, previous, problem):
-        record = _point(z_pred, row, np.asarray(target, dtype), previous, problem, end, options)
+        record = _point(z_pred, row, np.asarray(target, dtype), previous, problem, end_at, options)
         # What the loop reads, on the host; the rest stays put until a point is kept.
         host = jax.device_get({name: record[name] for name in ("z", "tangent", "sign", "steps", "converged")})
         index, margin = np.asarray(-1, np.int32), np.asarray(np.nan, dtype)
@@ -338,7 +342,7 @@ def follow_branch(
             index, margin = jax.device_get(tested[:2])
         return dict(record, **host, index=index, margin=margin)
 
-    _compile_point_ahead(rod, jnp.asarray(length, dtype), start, end, options, k)
+    _compile_point_ahead(rod, jnp.asarray(length, dtype), start, end_at, options, k)
     if switch is None:
         sol = solve_boundary_value(rod, length, start=start, end=probe, guess=guess, options=options)
         if sol.segments != k:

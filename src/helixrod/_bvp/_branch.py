@@ -8,8 +8,9 @@ width of the range asked for: $z = (y, \\lambda/\\Lambda)$, $G(z) = 0$ the $6k$ 
 equations of the end condition `end(lambda)`.  From a point $z_j$ with unit tangent $t_j$
 (the null vector of $G_z$, oriented along the branch) the predictor $z_j + \\Delta s\\,t_j$ is
 corrected by Newton's method on $G(z) = 0$, $t_j\\cdot(z - z_j) = \\Delta s$ (Keller 1977), the
-Jacobian exact (forward mode through the flows, at the ODE tolerance).  The step grows after
-easy corrections and halves after failed ones.
+Jacobian from the Jacobi fields of the pieces in equal Runge--Kutta steps
+(`JACOBIAN_STEPS_PER_RADIAN`; the residual keeps the ODE tolerance, and so the branch).  The
+step grows after easy corrections and halves after failed ones.
 
 Test functions (Seydel, *Practical Bifurcation and Stability Analysis*, 2010, sec. 5.3):
 
@@ -20,7 +21,12 @@ Test functions (Seydel, *Practical Bifurcation and Stability Analysis*, 2010, se
   isotropic rod's two bending planes, leaves the sign unchanged and is reported only by the
   jump of the stability index by two).
 
-Each is located by bisection in the arclength between the two points that bracket it.  At a
+Each is located by bisection in the arclength between the two points that bracket it, on the
+sign of its test function.  Forward-mode derivatives of the adaptive integration, which the
+corrector used before, are not accurate where a piece is straight (the adaptive steps follow
+the solution, exact there in one step, not its variations): they placed the branch points of
+`tests/test_branch.py`'s Euler column 2.1e-3 and 7.4e-4 off, the Jacobi fields 2.8e-9 and
+1.3e-9.  At a
 branch point the kernel of $G_z$ is two-dimensional; its direction orthogonal to the branch's
 tangent (from the SVD) is the tangent of the bifurcating branch, stored with the point:
 `follow_branch(..., switch=point)` continues along it.  Every point carries the stability of
@@ -42,7 +48,7 @@ from .._status import RESULTS
 from ._bulk import residual_scales
 from ._ends import AbstractEnd, Clamped, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
-from ._shooting import ShootingArgs, shooting_residual
+from ._shooting import ShootingArgs, linearised_equations, residual_and_flows
 from ._solve import ode_tolerances, solve_boundary_value, stability_of_nodes
 
 #: Special points a branch reports.
@@ -53,6 +59,10 @@ LOCATE_BISECTIONS = 30
 
 #: Newton steps of one corrector.
 CORRECTOR_STEPS = 12
+
+#: Equal Runge--Kutta steps per radian of the Jacobi fields behind the corrector's Jacobian,
+#: its tangent and the determinant's sign (`linearised_equations`).
+JACOBIAN_STEPS_PER_RADIAN = 48
 
 #: Largest angle (cosine) between consecutive tangents: a sharper turn is a jump to another
 #: branch and the step is halved.
@@ -126,8 +136,6 @@ class _Problem(eqx.Module):
 def _args(problem: _Problem, end_at, lam, options: BoundaryValueOptions) -> ShootingArgs:
     rod, length = problem.rod, problem.length
     scales = residual_scales(rod, length)
-    # The flows' Jacobian (`_flows`) is integrated at the ODE tolerance itself: it locates
-    # folds and branch points.
     ode_tol = ode_tolerances(options, problem.length.dtype)
     end = end_at(lam).condition()
     return ShootingArgs(rod, length, problem.start, end, problem.ref_x, problem.ref_frame, scales, ode_tol)
@@ -154,15 +162,13 @@ def _point(z_pred, row, target, previous, problem, end_at, options):
     tolerance = options.atol
 
     def evaluate(z):
-        """The equations, their Jacobian and the pieces at `z`, from one forward-mode pass
-        (the program holds one copy of the flows and their derivatives, not three)."""
-
-        def equations(z):
-            args = _args(problem, end_at, z[-1] * problem.scale, options)
-            g, pieces = shooting_residual(z[:-1], args, options)
-            return g, (g, pieces)
-
-        J, (g, pieces) = jax.jacfwd(equations, has_aux=True)(z)
+        """The equations, their Jacobian and the pieces at `z`: the flows integrated once,
+        their derivatives as Jacobi fields (`linearised_equations`)."""
+        args_at = lambda z: _args(problem, end_at, z[-1] * problem.scale, options)  # noqa: E731
+        args = args_at(z)
+        g, (pieces, flows, _) = residual_and_flows(z[:-1], args, options)
+        equations = linearised_equations(z[:-1], args, options, flows, JACOBIAN_STEPS_PER_RADIAN)
+        J = jax.jacfwd(lambda v: equations(v[:-1], args_at(v))[0])(z)
         return g, J, pieces
 
     def unfinished(state):
@@ -329,12 +335,12 @@ def follow_branch(
 
     # The loop's bookkeeping runs on the host, in NumPy, on each step's results: in jnp
     # each small operation was a program compiled at the first call (~80 of them, ~1.4 s).
-    def solve_point(z_pred, row, target, previous, problem):
+    def solve_point(z_pred, row, target, previous, problem, tested=True):
         record = _point(z_pred, row, np.asarray(target, dtype), previous, problem, end_at, options)
         # What the loop reads, on the host; the rest stays put until a point is kept.
         host = jax.device_get({name: record[name] for name in ("z", "tangent", "sign", "steps", "converged")})
         index, margin = np.asarray(-1, np.int32), np.asarray(np.nan, dtype)
-        if options.stability_pieces > 0 and host["converged"]:
+        if tested and options.stability_pieces > 0 and host["converged"]:
             tested = stability_of_nodes(
                 rod, problem.length, record["end"], record["force"], record["moment0"], record["xs"], record["frames"],
                 RESULTS.successful, options,
@@ -385,17 +391,17 @@ def follow_branch(
         z[6:-1] = 0.0
         return dict(record, z=z), problem
 
-    def corrected(record, problem, distance):
+    def corrected(record, problem, distance, tested=True):
         z_pred = record["z"] + distance * record["tangent"]
         t = record["tangent"]
-        return solve_point(z_pred, t, t @ z_pred, t, problem)
+        return solve_point(z_pred, t, t @ z_pred, t, problem, tested)
 
     def locate(record, problem, distance, test):
         a, b = 0.0, distance
         best = None
         for _ in range(LOCATE_BISECTIONS):
             mid = 0.5 * (a + b)
-            trial = corrected(record, problem, mid)
+            trial = corrected(record, problem, mid, tested=False)  # a special point holds no stability
             if not bool(trial["converged"]):
                 b = mid
                 continue
@@ -430,20 +436,15 @@ def follow_branch(
                 break
         fold = np.sign(float(new["tangent"][-1])) * np.sign(float(current["tangent"][-1])) < 0
         crossed = float(new["sign"]) * float(current["sign"]) < 0
-        # Located by the stability index where it changes (the stability test integrates the
-        # variations in equal steps, 1e-8 accurate; the adaptive Jacobian of the test
-        # functions is not, on straight pieces), else by the test function.
-        by_index = int(new["index"]) != int(current["index"]) and min(int(new["index"]), int(current["index"])) >= 0
+        # Each located by its test function (module docstring), not by the stability test:
+        # on the Euler column of `benchmarks/bench_first_calls.py` the margin's zero (12
+        # steps a radian) lies 1.2e-8 off the first branch point, the index's threshold
+        # (`NEUTRAL`) 3.3e-6 off the second; the test functions 2.8e-9 and 7.7e-10.
         step_taken = float(np.linalg.norm(new["z"] - current["z"]))
         for kind, found in (("fold", fold), ("branch point", crossed and not fold)):
             if not found:
                 continue
-            if by_index and min(int(new["index"]), int(current["index"])) == 0:
-                # The margin's zero, not the index's threshold (`NEUTRAL`) below it.
-                point = locate(current, problem, step_taken, lambda r: bool(float(r["margin"]) > 0))
-            elif by_index:
-                point = locate(current, problem, step_taken, lambda r: int(r["index"]))
-            elif kind == "fold":
+            if kind == "fold":
                 point = locate(current, problem, step_taken, lambda r: np.sign(float(r["tangent"][-1])))
             else:
                 point = locate(current, problem, step_taken, lambda r: np.sign(float(r["sign"])))

@@ -197,7 +197,7 @@ def _pieces(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: b
     return (N, M0, xs, frames), ends, flows, saved
 
 
-def _residual_and_flows(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: bool = True, flows_of=None, saveat=None):
+def residual_and_flows(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: bool = True, flows_of=None, saveat=None):
     """The 6k shooting equations; aux: ((nodes, ends), flows, saved) (`_pieces`)."""
     nodes, ends, flows, saved = _pieces(y, args, options, materialise, flows_of, saveat)
     _, _, xs, frames = nodes
@@ -211,7 +211,7 @@ def _residual_and_flows(y, args: ShootingArgs, options: BoundaryValueOptions, ma
 
 def shooting_residual(y, args: ShootingArgs, options: BoundaryValueOptions, materialise: bool = True):
     """The 6k shooting equations; aux: the nodes and end states."""
-    residual, (pieces, *_) = _residual_and_flows(y, args, options, materialise)
+    residual, (pieces, *_) = residual_and_flows(y, args, options, materialise)
     return residual, pieces
 
 
@@ -227,22 +227,34 @@ def shooting_jacobian(y, args: ShootingArgs, options: BoundaryValueOptions, flow
     """The Jacobian of the shooting equations at `y` that steers the root finder, `(6k,
     6k)`, and that of the pieces (nodes, ends; last axis `6k`), given the `flows` `(k, 18)`
     already integrated at `y`: only the flows' derivatives are integrated, as Jacobi fields
-    by equal Runge--Kutta steps (`flow_variations` at `STEERING_STEPS_PER_RADIAN`), not the
-    flows again, whatever the ODE tolerance: a Jacobian only sets the steps (its error makes
-    convergence linear with a rate of about its relative error, and Broyden updates recover
-    most of that), while the residual -- and so the root -- keeps the full ODE tolerance."""
+    by equal Runge--Kutta steps (`linearised_equations` at `STEERING_STEPS_PER_RADIAN`), not
+    the flows again, whatever the ODE tolerance: a Jacobian only sets the steps (its error
+    makes convergence linear with a rate of about its relative error, and Broyden updates
+    recover most of that), while the residual -- and so the root -- keeps the full ODE
+    tolerance."""
+    equations = linearised_equations(y, args, options, flows, STEERING_STEPS_PER_RADIAN)
+    return _jacobian_columns(lambda z: equations(z, args), y)
+
+
+def linearised_equations(y, args: ShootingArgs, options: BoundaryValueOptions, flows, per_radian: float):
+    """The shooting equations linearised at `y`, as a function `(z, args) -> (residual,
+    pieces)` that integrates nothing: the `flows` `(k, 18)` already integrated at `y` and
+    their derivatives along the pieces' start wrenches, integrated here once as Jacobi fields
+    (`flow_variations`, `per_radian` equal steps per radian).  Its value at `y` is the
+    residual of the flows; its derivatives in `z`, and in anything of `args` that the flows
+    do not depend on (the end condition), are the equations' Jacobian to the Jacobi fields'
+    accuracy."""
     k = options.segments
     rod, piece = args.rod, args.length / k
     _, local = _local_wrenches(y, args, k)
-    jacobian = per_piece(lambda w: flow_variations(rod, w, piece, options.max_ode_steps, STEERING_STEPS_PER_RADIAN), local)  # (k, 6, 18)
-
+    jacobian = per_piece(lambda w: flow_variations(rod, w, piece, options.max_ode_steps, per_radian), local)  # (k, 6, 18)
     no_theta = jnp.zeros(0, y.dtype)
 
-    def residual(z):
-        r, (pieces, *_) = _residual_and_flows(z, args, options, flows_of=lambda w: _given_flows(w, no_theta, flows, jacobian))
+    def equations(z, args):
+        r, (pieces, *_) = residual_and_flows(z, args, options, flows_of=lambda w: _given_flows(w, no_theta, flows, jacobian))
         return r, pieces
 
-    return _jacobian_columns(residual, y)
+    return equations
 
 
 def _jacobian_columns(residual, y):
@@ -259,7 +271,7 @@ def root(y0, args: ShootingArgs, options: BoundaryValueOptions, saveat=None):
     Each step integrates the flows once, saving at `saveat` by the dense output of that
     integration (so the states at the root need no integration of their own); a fresh
     Jacobian integrates only their derivatives (`shooting_jacobian`)."""
-    fn = lambda y, a: _residual_and_flows(y, a, options, materialise=False, saveat=saveat)  # noqa: E731
+    fn = lambda y, a: residual_and_flows(y, a, options, materialise=False, saveat=saveat)  # noqa: E731
     jacobian = lambda y, a, aux: shooting_jacobian(y, a, options, aux[1])[0]  # noqa: E731
     solver = LevenbergMarquardtBroyden(atol=options.atol, damped=options.method != "newton", jacobian=jacobian)
     y0, args, saveat = no_gradient((y0, args, saveat))
@@ -362,7 +374,7 @@ def _implicit_tangents(y, pieces, flows, args, saveat, t_args, options: Boundary
         theta = ravel_pytree((d.rod, d.length))[0]
         given = lambda w: _given_flows(w, theta, flows, jacobian)  # noqa: E731
         a = eqx.combine(d, rest)
-        r, (pieces, *_) = _residual_and_flows(z, a, options, flows_of=given)
+        r, (pieces, *_) = residual_and_flows(z, a, options, flows_of=given)
         observed = None
         if saved is not None:
             nodes, local_z = _local_wrenches(z, a, k)

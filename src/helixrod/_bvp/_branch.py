@@ -284,7 +284,9 @@ def follow_branch(
       every point costs about a solve; `stability_pieces=0` turns it off).
 
     Returns a `Branch`.  Eager (a Python loop over compiled steps): one compilation per
-    `end` function and options.
+    load and options; two `end` functions that trace to the same operations and constants
+    are one load (`_compile.TracedFunction`), and with the compilation cache on a later
+    process loads the compiled steps.
 
     **Example** (the post-buckled Euler column, no hand-made guess)
 

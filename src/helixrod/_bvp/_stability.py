@@ -128,17 +128,14 @@ def second_variation(rod, length, end: EndCondition, N, end_position, transfers)
     the mask of free slots."""
     p = transfers.shape[0]
     pieces = jax.vmap(piece_hessian)(transfers).reshape(p, 2, 6, 2, 6)
-    # Block-tridiagonal in the p + 1 nodes: node j's diagonal block sums its two pieces'.
-    pad = jnp.zeros((1, 6, 6), N.dtype)
-    diagonal = jnp.concatenate([pieces[:, 0, :, 0], pad]) + jnp.concatenate([pad, pieces[:, 1, :, 1]])
-    upper = jnp.concatenate([pieces[:, 0, :, 1], pad])  # node j with node j + 1
-    lower = jnp.concatenate([pad, pieces[:, 1, :, 0]])  # node j with node j - 1
-    eye, above = jnp.eye(p + 1, dtype=N.dtype), jnp.eye(p + 1, k=1, dtype=N.dtype)
-    H = (
-        jnp.einsum("ij,iab->iajb", eye, diagonal)
-        + jnp.einsum("ij,iab->iajb", above, upper)
-        + jnp.einsum("ji,iab->iajb", above, lower)
-    ).reshape(6 * (p + 1), 6 * (p + 1))
+    # Block-tridiagonal in the p + 1 nodes: piece j adds its Hessian to nodes (j, j + 1).
+    # (Placed by index: built as sums of Kronecker-like products with identity matrices it
+    # cost ~2x as long, measured on its own at 16 pieces.)
+    j = jnp.arange(p)
+    H = jnp.zeros((p + 1, 6, p + 1, 6), N.dtype)
+    for a, b in ((0, 0), (0, 1), (1, 0), (1, 1)):
+        H = H.at[j + a, :, j + b, :].add(pieces[:, a, :, b, :])
+    H = H.reshape(6 * (p + 1), 6 * (p + 1))
     # A Loaded end: the dead force acts at the point r from the end, carried by its frame:
     # where its line of action (through `point`) passes closest to the end.
     to_point = end.point - end_position

@@ -253,3 +253,29 @@ def test_solve_boundary_value_in_a_later_process(tmp_path):
     assert first["ok"] and second["ok"] and first["index"] == second["index"] == 0
     np.testing.assert_allclose(second["force"], first["force"], rtol=0, atol=1e-12)
     np.testing.assert_allclose(second["x"], first["x"], rtol=0, atol=1e-12)
+
+
+@pytest.mark.heavy
+def test_the_atlas_and_the_branch_are_kept(exported_programs):
+    """The programs behind the warm first calls of `stability_atlas` (its index and critical
+    lengths, apart from the registers' custom call) and of `follow_branch` (the first
+    solve, its stability test and the corrector, whose load is named by its trace) are
+    exported, none refused: a later process loads them instead of tracing them."""
+    import helixrod
+
+    spring = helixrod.Rod(1.0, 1.0, 1 / 1.3, uhat=(0.0, 1.0, 0.3))
+    exported = _trace_cache.counts["exported"]
+    grid = (jnp.array([0.5, 1.1]), jnp.array([0.2, -0.3]))
+    atlas = helixrod.stability_atlas(spring, *grid, 5.0, bisections=6, progress=False)
+    assert _trace_cache.counts["exported"] == exported + 2
+    _trace_cache.enable(None)  # the same atlas by the plain programs
+    plain = helixrod.stability_atlas(spring, *grid, 5.0, bisections=6, progress=False)
+    _trace_cache.enable(exported_programs.parent)
+    for name in ("instability_index", "stability_margin", "critical_length", "instability_type"):
+        np.testing.assert_array_equal(np.asarray(getattr(atlas, name)), np.asarray(getattr(plain, name)))
+    exported = _trace_cache.counts["exported"]
+    load = lambda P: helixrod.Loaded(force=jnp.stack([0.0 * P, 0.0 * P, -P]))  # noqa: E731
+    branch = helixrod.follow_branch(helixrod.Rod(1.0, 1.5, 0.8), 1.0, load, (1.0, 2.0), stability_pieces=6)
+    assert _trace_cache.counts["exported"] == exported + 3
+    assert np.all(np.asarray(branch.instability_index) == 0)
+    assert list(exported_programs.glob("*.refused")) == []

@@ -82,6 +82,7 @@ from importlib import metadata
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from . import _trace_cache
@@ -329,6 +330,12 @@ def once_per_signature(signature):
         return at_first_call
 
     return decorate
+
+
+def leaf_shapes(tree) -> tuple:
+    """(shape, dtype) of every leaf of `tree`, JAX's promotion applied: the part of a
+    `once_per_signature` key that says which arrays the programs are compiled for."""
+    return tuple((jnp.shape(a), jnp.result_type(a)) for a in jax.tree.leaves(tree))
 
 
 def committed_placement(tree):

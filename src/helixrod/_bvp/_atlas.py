@@ -61,7 +61,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._compile import committed_placement, compile_ahead, filter_jit, jit, once_per_signature
+from .._compile import committed_placement, compile_ahead, filter_jit, jit, leaf_shapes, once_per_signature
 from .._equilibria import helix_equilibria
 from .._misc import check_integer, finite_scalar, float_dtype, solve_small
 from .._lie import hat, so3_exp
@@ -421,9 +421,7 @@ def _critical_lengths(rod, n, m, max_length, bisections: int, chunk_size: int):
 
 
 def _atlas_signature(rod, grid, max_length, bisections: int, chunk_size: int):
-    leaves = jax.tree.leaves((rod, grid, max_length))
-    shapes = tuple((jnp.shape(a), jnp.result_type(a)) for a in leaves)
-    return jax.tree.structure(rod), shapes, committed_placement((rod, grid)), bisections, chunk_size
+    return jax.tree.structure(rod), leaf_shapes((rod, grid, max_length)), committed_placement((rod, grid)), bisections, chunk_size
 
 
 @once_per_signature(_atlas_signature)

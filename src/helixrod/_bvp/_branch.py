@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._compile import TracedFunction, committed_placement, compile_ahead, jit, once_per_signature
+from .._compile import TracedFunction, committed_placement, compile_ahead, jit, leaf_shapes, once_per_signature
 from .._misc import check_integer, finite_scalar, float_dtype
 from .._rod import check_one_rod
 from .._status import RESULTS
@@ -213,8 +213,7 @@ def _state_of(rod, length, force, moment0, parameter, segments: int):
 
 
 def _point_signature(rod, length, start, end_at, options, k: int):
-    leaves = jax.tree.leaves((rod, length, start, options))
-    shapes = tuple((jnp.shape(a), jnp.result_type(a)) for a in leaves)
+    shapes = leaf_shapes((rod, length, start, options))
     return jax.tree.structure((rod, start, options)), shapes, committed_placement((rod, length, start)), end_at, k, float_dtype()
 
 
@@ -337,12 +336,12 @@ def follow_branch(
 
     # The loop's bookkeeping runs on the host, in NumPy, on each step's results: in jnp
     # each small operation was a program compiled at the first call (~80 of them, ~1.4 s).
-    def solve_point(z_pred, row, target, previous, problem, tested=True):
+    def solve_point(z_pred, row, target, previous, problem, with_stability=True):
         record = _point(z_pred, row, np.asarray(target, dtype), previous, problem, end_at, options)
         # What the loop reads, on the host; the rest stays put until a point is kept.
         host = jax.device_get({name: record[name] for name in ("z", "tangent", "sign", "steps", "converged")})
         index, margin = np.asarray(-1, np.int32), np.asarray(np.nan, dtype)
-        if tested and options.stability_pieces > 0 and host["converged"]:
+        if with_stability and options.stability_pieces > 0 and host["converged"]:
             tested = stability_of_nodes(
                 rod, problem.length, record["end"], record["force"], record["moment0"], record["xs"], record["frames"],
                 RESULTS.successful, options,
@@ -393,17 +392,17 @@ def follow_branch(
         z[6:-1] = 0.0
         return dict(record, z=z), problem
 
-    def corrected(record, problem, distance, tested=True):
+    def corrected(record, problem, distance, with_stability=True):
         z_pred = record["z"] + distance * record["tangent"]
         t = record["tangent"]
-        return solve_point(z_pred, t, t @ z_pred, t, problem, tested)
+        return solve_point(z_pred, t, t @ z_pred, t, problem, with_stability)
 
     def locate(record, problem, distance, test):
         a, b = 0.0, distance
         best = None
         for _ in range(LOCATE_BISECTIONS):
             mid = 0.5 * (a + b)
-            trial = corrected(record, problem, mid, tested=False)  # a special point holds no stability
+            trial = corrected(record, problem, mid, with_stability=False)  # a special point holds no stability
             if not bool(trial["converged"]):
                 b = mid
                 continue

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._compile import committed_placement, compile_ahead, jit, once_per_signature
+from .._compile import committed_placement, compile_ahead, jit, leaf_shapes, once_per_signature
 from .._geometry import unloaded_observables, unloaded_state
 from .._lie import twist_angle, unwrap_near
 from .._misc import check_choice, finite_scalar, float_dtype, is_concrete, no_gradient
@@ -282,8 +282,8 @@ def _tested(rod, length, kind, values, sols: BoundaryValueSolution, options: Bou
 
 
 def _curve_signature(rod, length, kind, values, options, mode, hints, with_bulk, guess):
-    leaves = jax.tree.leaves((rod, length, kind, values, options, hints, guess))
-    return (jax.tree.structure((rod, options, hints, guess)), mode, with_bulk, tuple((jnp.shape(a), jnp.result_type(a)) for a in leaves))
+    shapes = leaf_shapes((rod, length, kind, values, options, hints, guess))
+    return (jax.tree.structure((rod, options, hints, guess)), mode, with_bulk, shapes)
 
 
 @once_per_signature(_curve_signature)

@@ -114,6 +114,34 @@ def test_buckled_strip_turned_in_its_plane_folds():
     assert not bool(beyond.ok) or float(jnp.linalg.norm(beyond.force - fold.force)) > 0.05 * float(jnp.linalg.norm(fold.force))
 
 
+def test_the_first_point_is_newtons_from_the_default_guess_where_that_is_stable(monkeypatch):
+    """From the default guess the first point is the corrector's, with no solve of
+    `solve_boundary_value`, where it lands on a stable equilibrium; beyond the first
+    critical load the straight column it lands on is unstable, and the branch starts where
+    `solve_boundary_value` lands from that guess: the buckled column, stable."""
+    from helixrod._bvp import _branch
+
+    rod = helixrod.Rod(1.0, 1.5, 0.8)
+    solves = []
+
+    def recorded(*args, **kwargs):
+        solves.append(kwargs["end"])
+        return helixrod.solve_boundary_value(*args, **kwargs)
+
+    monkeypatch.setattr(_branch, "solve_boundary_value", recorded)
+    below = helixrod.follow_branch(rod, L, compressive, (1.0, 1.5), stability_pieces=8)
+    assert solves == [] and np.all(np.asarray(below.instability_index) == 0)
+    np.testing.assert_allclose(below.force[0], [0.0, 0.0, -1.0], atol=1e-12)
+    np.testing.assert_allclose(below.end_position[0], [0.0, 0.0, L], atol=1e-12)  # straight
+    beyond = helixrod.follow_branch(rod, L, compressive, (3.0, 3.2), stability_pieces=8)
+    assert len(solves) == 1
+    direct = helixrod.solve_boundary_value(rod, L, end=compressive(jnp.asarray(3.0)), stability_pieces=8)
+    assert bool(direct.stable) and int(beyond.instability_index[0]) == 0
+    assert float(jnp.linalg.norm(direct.end_position[:2])) > 0.3  # buckled
+    np.testing.assert_allclose(beyond.end_position[0], direct.end_position, atol=1e-6)
+    np.testing.assert_allclose(beyond.moment0[0], direct.moment0, atol=1e-6)
+
+
 def test_bad_arguments_are_named():
     rod = helixrod.Rod(1.0, 1.5, 0.8)
     with pytest.raises(ValueError, match="end must be a function"):

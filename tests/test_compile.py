@@ -287,6 +287,26 @@ def test_nothing_is_compiled_ahead_where_the_call_would_not_compile_it(monkeypat
     assert program not in _compile._compiling
 
 
+def test_a_compilation_left_running_does_not_stop_the_next(compilations, monkeypatch):
+    """A program compiled ahead for a call that never came (its caller raised first) leaves
+    its thread running; the next first call of another signature still compiles beside its
+    caller, and each call finds its program."""
+    monkeypatch.setattr(_compile, "cores", lambda: 2)
+
+    def abandoned(x):
+        return jnp.cos(x) * 7.0 - x
+
+    program = _compile.jit(abandoned)
+    assert _compile.compile_ahead(program, jax.ShapeDtypeStruct((5,), jnp.float32)) is not None
+    assert _compile.compile_ahead(program, jax.ShapeDtypeStruct((6,), jnp.float32)) is not None
+    for n in (6, 5):
+        x = jnp.linspace(0.0, 1.0, n, dtype=jnp.float32)
+        np.testing.assert_allclose(program(x), np.cos(np.asarray(x)) * 7.0 - np.asarray(x), rtol=1e-6)
+    threads = sorted(thread for thread, name in compilations if name == "abandoned")
+    assert threads == ["helixrod-compile-abandoned"] * 2, threads
+    assert program not in _compile._compiling
+
+
 def test_cores_are_those_the_process_may_run_on():
     expected = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     assert _compile.cores() == expected >= 1

@@ -209,8 +209,27 @@ def _compiles_for_cpu() -> bool:
     return jax.default_backend() == "cpu"
 
 
-#: Programs compiling ahead of their call (`compile_ahead`), by the function that calls them.
+#: Threads compiling programs ahead of their call (`compile_ahead`), by the function that
+#: calls them: `[(signature, thread), ...]` (`_call_signature`).
 _compiling: dict = {}
+
+
+def _call_signature(args, kwargs) -> tuple:
+    """What a program is compiled for, as far as `compile_ahead` tells two apart: the
+    arguments' structure and their leaves' (shape, dtype), or the leaf itself where it is
+    no array (a static argument)."""
+    leaves, structure = jax.tree.flatten((args, kwargs))
+
+    def part(leaf):
+        if isinstance(leaf, (jax.Array, np.ndarray, np.generic, jax.ShapeDtypeStruct, int, float, complex)):
+            return jnp.shape(leaf), jnp.result_type(leaf)
+        try:
+            hash(leaf)
+        except TypeError:
+            return id(leaf)
+        return leaf
+
+    return structure, tuple(part(leaf) for leaf in leaves)
 
 
 def _with_options(plain, tuned, options, traced_once=None):
@@ -245,7 +264,12 @@ def _with_options(plain, tuned, options, traced_once=None):
 
     def ahead(*args, **kwargs):
         fallback = tuned if options else plain
-        if not (_at_top_level() and _compiles_for_cpu() and hasattr(fallback, "trace")) or call in _compiling or cores() < 2:
+        if not (_at_top_level() and _compiles_for_cpu() and hasattr(fallback, "trace")) or cores() < 2:
+            return None
+        # One compilation of a program at a time; one left running by a caller that raised
+        # before its call does not keep another signature from compiling ahead.
+        signature = _call_signature(args, kwargs)
+        if any(running == signature and thread.is_alive() for running, thread in _compiling.get(call, ())):
             return None
         collecting = gc.isenabled()
         gc.disable()
@@ -271,7 +295,7 @@ def _with_options(plain, tuned, options, traced_once=None):
             if collecting:
                 gc.enable()
         thread = threading.Thread(target=_compile_quietly, args=(lowered,), name=f"helixrod-compile-{plain.__name__}")
-        _compiling[call] = thread
+        _compiling.setdefault(call, []).append((signature, thread))
         thread.start()
         return structure
 
@@ -302,8 +326,8 @@ def compile_ahead(fun, *args, **kwargs):
     program compiled, this traces and lowers it again for nothing (JAX's caches make that
     fast, not free).  Returns None, starting nothing, where `fun` would not compile a
     top-level program of its own (inside a caller's transformation, not on the CPU), for a
-    function of `filter_jit`, while an earlier compilation of `fun` is running, where
-    tracing fails (the call raises that error itself), and on one core (`cores`), where
+    function of `filter_jit`, while a compilation of `fun` for the same arguments' types is
+    running, where tracing fails (the call raises that error itself), and on one core (`cores`), where
     nothing runs beside the caller."""
     ahead = getattr(fun, "compile_ahead", None)
     return None if ahead is None else ahead(*args, **kwargs)
@@ -365,11 +389,9 @@ def _compile_quietly(lowered) -> None:
 
 
 def _finish_compiling(call) -> None:
-    """Wait for a compilation of `call`'s program started by `compile_ahead`."""
-    thread = _compiling.get(call)
-    if thread is not None:
+    """Wait for the compilations of `call`'s programs started by `compile_ahead`."""
+    for _, thread in _compiling.pop(call, ()):
         thread.join()
-        _compiling.pop(call, None)
 
 
 def jit(fun=None, /, *, run_once: bool = False, trace_cache: bool = False, **kwargs):

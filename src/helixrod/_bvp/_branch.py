@@ -49,7 +49,7 @@ from ._bulk import residual_scales
 from ._ends import AbstractEnd, Clamped, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
 from ._shooting import ShootingArgs, linearised_equations, residual_and_flows
-from ._solve import ode_tolerances, solve_boundary_value, stability_of_nodes
+from ._solve import as_warm_start, ode_tolerances, solve_boundary_value, stability_of_nodes
 
 #: Special points a branch reports.
 SPECIAL_KINDS = ("fold", "branch point")
@@ -156,9 +156,8 @@ def _tangent(J, previous):
 def _point(z_pred, row, target, previous, problem, end_at, options):
     """Correct `z_pred` onto the branch under the constraint `row . z = target`, then the
     tangent (oriented by `previous`), the determinant's sign, the nodes and the end
-    condition there (its stability is `solve_boundary_value`'s program of its own, which
-    the first point's solve compiles: `stability_of_nodes`).  Never raises: read
-    `converged`."""
+    condition there (its stability is `solve_boundary_value`'s program of its own,
+    `stability_of_nodes`, compiled once for both).  Never raises: read `converged`."""
     tolerance = options.atol
 
     def evaluate(z):
@@ -219,18 +218,25 @@ def _point_signature(rod, length, start, end_at, options, k: int):
 
 @once_per_signature(_point_signature)
 def _compile_point_ahead(rod, length, start, end_at, options, k: int) -> bool:
-    """At the first branch of its kind: start compiling the corrector step (`_point`) on a
-    thread of its own (`compile_ahead`, from the specs of its state and reference nodes)
-    while the first point is solved.  With the points' stability from the first solve's
-    program (`stability_of_nodes`) and the loop's bookkeeping in NumPy, the README's Euler
-    column (`Rod(1, 2, 0.8)`, P from 1 to 12, 39 points; fresh processes on 2 cores,
-    alternating): first call 11.4-11.6 -> 7.2-7.4 s, later calls unchanged (best of seven
-    123-125 against 124-134 ms), the same branch."""
+    """At the first branch of its kind: start compiling the corrector step (`_point`, from
+    the specs of its state and reference nodes) and the points' stability test
+    (`stability_of_nodes`, from the corrector's output structure), each on a thread of its
+    own (`compile_ahead`), while the first point's guess is made.  With the loop's
+    bookkeeping in NumPy, the README's Euler column (`Rod(1, 2, 0.8)`, P from 1 to 12, 39
+    points; fresh processes on 2 cores, alternating): first call 11.4-11.6 -> 7.2-7.4 s
+    (the corrector beside the first solve), later calls unchanged (best of seven 123-125
+    against 124-134 ms), the same branch."""
     placement = committed_placement((rod, length, start))
     spec = lambda *shape: jax.ShapeDtypeStruct(shape, float_dtype(), sharding=placement)  # noqa: E731
     state = spec(6 * k + 1)
     problem = _Problem(rod, spec(), start, spec(k - 1, 3), spec(k - 1, 3, 3), spec())
-    return compile_ahead(_point, state, state, spec(), state, problem, end_at, options) is not None
+    record = compile_ahead(_point, state, state, spec(), state, problem, end_at, options)
+    if record is not None and options.stability_pieces > 0:
+        compile_ahead(
+            stability_of_nodes, rod, problem.length, record["end"], record["force"], record["moment0"], record["xs"],
+            record["frames"], RESULTS.successful, options,
+        )
+    return record is not None
 
 
 def _bifurcating_direction(J, tangent):
@@ -270,10 +276,13 @@ def follow_branch(
     - `rod`, `length`, `start`: as `solve_boundary_value`.
     - `end`: a function of the load parameter returning the end condition (`Clamped`,
       `Loaded`, `Tweezer`), traceable by JAX, e.g. `lambda P: helixrod.Loaded(force=jnp.stack([0.0, 0.0, -P]))`.
-    - `parameter`: `(first, last)`: the branch starts at `first` (from `solve_boundary_value`
-      with `guess=`) heading towards `last`, and ends where it leaves the interval between
-      them (the last point exactly at its end), after `max_points`, or where the step falls
-      below `min_step`.
+    - `parameter`: `(first, last)`: the branch starts at `first` heading towards `last`, and
+      ends where it leaves the interval between them (the last point exactly at its end),
+      after `max_points`, or where the step falls below `min_step`.  The first point is the
+      equilibrium that `solve_boundary_value` finds with `guess=`; from the default guess,
+      first Newton's corrector from it, kept where it converges to a stable equilibrium
+      (as `solve_boundary_value` keeps its solve from that guess), which spares the first
+      call the solve's programs.
     - `switch`: a branch point (`SpecialPoint`) of an earlier branch: start there instead and
       follow the bifurcating branch, in `direction` (+1 or -1: its two halves).
     - `step`, `max_step`, `min_step`: arclength steps in the scaled unknowns (forces in
@@ -349,28 +358,52 @@ def follow_branch(
             index, margin = jax.device_get(tested[:2])
         return dict(record, **host, index=index, margin=margin)
 
-    _compile_point_ahead(rod, jnp.asarray(length, dtype), start, end_at, options, k)
-    if switch is None:
-        sol = solve_boundary_value(rod, length, start=start, end=probe, guess=guess, options=options)
-        if sol.segments != k:
-            raise ValueError(f"{owner}: the first solve used {sol.segments} segments; give segments=")
-        z = np.asarray(_state_of(rod, jnp.asarray(length, dtype), sol.force, sol.moment0, jnp.asarray(first / scale, dtype), k))
+    def rebased(record, problem):
+        if k == 1:
+            return record, problem
+        problem = problem_at(record["xs"], record["frames"])
+        z = record["z"].copy()
+        z[6:-1] = 0.0
+        return dict(record, z=z), problem
+
+    def first_point(force, moment0, problem):
+        """The corrected point at `first` from a start wrench, its node corrections zero."""
+        z = np.asarray(_state_of(rod, jnp.asarray(length, dtype), force, moment0, jnp.asarray(first / scale, dtype), k))
         heading = np.zeros_like(z)
         heading[-1] = np.sign(last - first)
-        problem = problem_at(sol.node_position, sol.node_frame)
-    else:
+        return solve_point(z, heading, heading @ z, heading, problem), heading
+
+    if switch is not None:
         if not isinstance(switch, SpecialPoint) or switch.kind != "branch point":
             raise ValueError(f"{owner}: switch must be a branch point of a Branch (Branch.points('branch point'))")
         if switch.state.shape[0] != 6 * k + 1:
             raise ValueError(f"{owner}: switch comes from a branch of another number of segments")
+
+    _compile_point_ahead(rod, jnp.asarray(length, dtype), start, end_at, options, k)
+    here = None
+    if switch is None and guess is None and options.continuation == 0:
+        # Newton's corrector from the default guess (exact for a Loaded end about a fixed
+        # point), kept where it lands on a stable equilibrium, as `solve_boundary_value`
+        # keeps its solve from that guess: the first call compiles no solve of its own.
+        warm = as_warm_start(rod, jnp.asarray(length, dtype), start, probe.condition(), None, options)
+        problem = problem_at(warm.node_position, warm.node_frame)
+        trial, heading = first_point(warm.force, warm.moment0, problem)
+        if bool(trial["converged"]) and (int(trial["index"]) == 0 or options.stability_pieces == 0):
+            here, problem = rebased(trial, problem)
+    if here is None and switch is None:
+        sol = solve_boundary_value(rod, length, start=start, end=probe, guess=guess, options=options)
+        if sol.segments != k:
+            raise ValueError(f"{owner}: the first solve used {sol.segments} segments; give segments=")
+        problem = problem_at(sol.node_position, sol.node_frame)
+        here, heading = first_point(sol.force, sol.moment0, problem)
+    elif switch is not None:
         z, heading = np.array(switch.state, dtype), float(direction) * np.asarray(switch.direction, dtype)
         problem = problem_at(switch.node_position, switch.node_frame)
         problem = eqx.tree_at(lambda p: p.scale, problem, jnp.asarray(scale, dtype))
         # The state is relative to the nodes of the branch it was found on; restart from its own.
         z[6:-1] = 0.0
         z[-1] = float(switch.parameter) / scale
-
-    here = solve_point(z, heading, heading @ z, heading, problem)
+        here = solve_point(z, heading, heading @ z, heading, problem)
     if not bool(here["converged"]):
         raise ValueError(f"{owner}: the first point is not an equilibrium (residual above tolerance)")
     if switch is not None:
@@ -383,14 +416,6 @@ def follow_branch(
     message = f"reached max_points={max_points}"
     ds = float(step)
     inside = lambda lam: lo - 1e-12 * scale <= lam <= hi + 1e-12 * scale  # noqa: E731
-
-    def rebased(record, problem):
-        if k == 1:
-            return record, problem
-        problem = problem_at(record["xs"], record["frames"])
-        z = record["z"].copy()
-        z[6:-1] = 0.0
-        return dict(record, z=z), problem
 
     def corrected(record, problem, distance, with_stability=True):
         z_pred = record["z"] + distance * record["tangent"]

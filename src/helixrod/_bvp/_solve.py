@@ -183,17 +183,14 @@ def stability_at_points(rod, length, ends: EndCondition, N, M0, xs, frames, resu
     return jax.lax.map(one, (ends, N, M0, xs, frames, result))
 
 
-# In a program of its own: the solve and the test compile side by side at a first call
-# (`_compile_side_by_side`), and a finer test needs no new solve, nor a compilation of one.
-_stability_of = jit(_stability_where_solved, trace_cache=True)
-
-
-def stability_of_nodes(rod, length, end: EndCondition, N, M0, xs, frames, result, options: BoundaryValueOptions):
-    """`(index, margin, push)` of the equilibrium with lab start wrench (`N`, `M0`) and
-    shooting nodes `xs`, `frames` (`stability_inputs`) -- undefined where `result` is not
-    a success -- by the program that `solve_boundary_value` compiles beside its solve (a
-    caller with the same types and options finds it compiled)."""
-    return _stability_of(rod, length, end, N, M0, xs, frames, result, options)
+#: `stability_of_nodes(rod, length, end, N, M0, xs, frames, result, options)`: `(index,
+#: margin, push)` of the equilibrium with lab start wrench (`N`, `M0`) and shooting nodes
+#: `xs`, `frames` (`stability_inputs`), undefined where `result` is not a success.  A
+#: program of its own: the solve and the test compile side by side at a first call
+#: (`_compile_side_by_side`), a finer test needs no new solve, nor a compilation of one,
+#: and a caller with the same types and options (`follow_branch`) finds it compiled, or
+#: compiles it ahead (`compile_ahead`).
+stability_of_nodes = jit(_stability_where_solved, trace_cache=True)
 
 
 def restability(rod, length, end: EndCondition, sol, options: BoundaryValueOptions):
@@ -201,7 +198,7 @@ def restability(rod, length, end: EndCondition, sol, options: BoundaryValueOptio
     call (the default cantilever): the program's dispatch 12 us with these arguments against
     56 us with the whole solution in and out, and `replaced` 6 us against 66 us for
     `dataclasses.replace`, which runs the solution's `__init__` again."""
-    return with_stability(sol, _stability_of(rod, length, end, *stability_inputs(sol), options), options.stability_pieces)
+    return with_stability(sol, stability_of_nodes(rod, length, end, *stability_inputs(sol), options), options.stability_pieces)
 
 
 # A program of its own, compiled to run once (one per call of `solve_boundary_value`), as
@@ -250,7 +247,7 @@ def _compile_side_by_side(rod, length, start, end, guess, saveat, options, guess
     if sol is None:
         return False
     if options.stability_pieces > 0:
-        compile_ahead(_stability_of, rod, length, end, *stability_inputs(sol), options)
+        compile_ahead(stability_of_nodes, rod, length, end, *stability_inputs(sol), options)
     return True
 
 

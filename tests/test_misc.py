@@ -3,6 +3,7 @@ argument checks (raise for bad concrete values, pass traced values through), aga
 numpy and closed forms."""
 
 import dataclasses
+import functools
 
 import equinox as eqx
 import jax
@@ -273,6 +274,21 @@ def test_lowest_eigenpair_matches_eigh(rng):
     batch = np.stack([np.diag([3.0, 1.0, 2.0]), np.diag([-1.0, 5.0, 4.0])])
     counts, lows, _ = jax.vmap(_misc.lowest_eigenpair, in_axes=(0, None))(batch, 0.0)
     assert counts.tolist() == [0, 1] and np.allclose(lows, [1.0, -1.0], rtol=1e-15, atol=0)
+    # The vector only below the shift: zero where no eigenvalue lies below it, else the same
+    # vector, alone and under vmap (where both sides of its cond run).
+    only_below = jax.jit(functools.partial(_misc.lowest_eigenpair, vector_only_below=True))
+    A = rng.normal(size=(24, 24))
+    A = A + A.T
+    w = np.linalg.eigvalsh(A)
+    for shift in (w[0] - 1.0, w[0] + 1e-3):
+        count, lowest, vector = only_below(A, shift)
+        reference = lowest_eigenpair(A, shift)
+        assert int(count) == int(reference[0]) and float(lowest) == float(reference[1])
+        expected = np.asarray(reference[2]) if int(count) > 0 else np.zeros(24)
+        np.testing.assert_array_equal(np.asarray(vector), expected)
+    _, _, vectors = jax.vmap(only_below, in_axes=(0, None))(batch, 0.0)
+    np.testing.assert_array_equal(np.asarray(vectors[0]), np.zeros(3))
+    assert abs(float(vectors[1][0])) == pytest.approx(1.0, abs=1e-12)
 
 
 def test_symmetric_eigenvalue_min_matches_eigvalsh(rng):

@@ -403,7 +403,7 @@ def _shifted_tridiagonal_solve(d: Array, lower: Array, upper: Array, b: Array, p
 _MAX_BISECTIONS = 256
 
 
-def lowest_eigenpair(A: ArrayLike, shift: ArrayLike) -> tuple[Array, Array, Array]:
+def lowest_eigenpair(A: ArrayLike, shift: ArrayLike, vector_only_below: bool = False) -> tuple[Array, Array, Array]:
     """(number of eigenvalues below `shift`, the lowest eigenvalue, a unit eigenvector of it)
     of one symmetric matrix `A` `(n, n)`, without its full eigendecomposition.
 
@@ -415,7 +415,9 @@ def lowest_eigenpair(A: ArrayLike, shift: ArrayLike) -> tuple[Array, Array, Arra
     for $n = 96$.  Rows that are decoupled from the others and come last (the stability
     Hessian's fixed slots, with a huge diagonal) stay decoupled through the reduction, so a
     huge entry there does not spoil the rest.  For a multiple lowest eigenvalue the vector is
-    one of its eigenspace."""
+    one of its eigenspace.  `vector_only_below=True`: the vector only where an eigenvalue
+    lies below `shift`, zero (not computed: a `lax.cond`, both sides under `vmap`)
+    elsewhere -- the stability test needs it only where the equilibrium is unstable."""
     A = jnp.asarray(A)
     n = A.shape[-1]
     reflectors, d, e, taus = jax.lax.linalg.tridiagonal(A, lower=True)
@@ -445,21 +447,27 @@ def lowest_eigenpair(A: ArrayLike, shift: ArrayLike) -> tuple[Array, Array, Arra
 
     lo, hi, _ = jax.lax.while_loop(wide, bisect, (lo, hi, jnp.zeros((), jnp.int32)))
     lowest = 0.5 * (lo + hi)
-    # Inverse iteration from a start with no special symmetry.
-    x = 1.0 + 0.1 * jnp.sin(jnp.arange(n, dtype=d.dtype))
-    for _ in range(2):
-        x = _shifted_tridiagonal_solve(d - lowest, lower, upper, x, pivmin)
-        x = x / jnp.max(jnp.abs(x))
-        x = x / jnp.linalg.norm(x)
     index = jnp.arange(n)
 
-    def reflect(k, x):
-        # Q = H_0 H_1 ... H_{n-2}, H_i = I - tau_i v_i v_i^T, v_i = (0.., 1 at i+1, reflectors[i+2:, i]).
-        i = n - 2 - k
-        v = jnp.where(index > i + 1, reflectors[:, i], 0.0) + (index == i + 1)
-        return x - taus[i] * v * (v @ x)
+    def vector():
+        # Inverse iteration from a start with no special symmetry.
+        x = 1.0 + 0.1 * jnp.sin(jnp.arange(n, dtype=d.dtype))
+        for _ in range(2):
+            x = _shifted_tridiagonal_solve(d - lowest, lower, upper, x, pivmin)
+            x = x / jnp.max(jnp.abs(x))
+            x = x / jnp.linalg.norm(x)
 
-    return count, lowest, x if n == 1 else jax.lax.fori_loop(0, n - 1, reflect, x)
+        def reflect(k, x):
+            # Q = H_0 H_1 ... H_{n-2}, H_i = I - tau_i v_i v_i^T, v_i = (0.., 1 at i+1, reflectors[i+2:, i]).
+            i = n - 2 - k
+            v = jnp.where(index > i + 1, reflectors[:, i], 0.0) + (index == i + 1)
+            return x - taus[i] * v * (v @ x)
+
+        return x if n == 1 else jax.lax.fori_loop(0, n - 1, reflect, x)
+
+    if not vector_only_below:
+        return count, lowest, vector()
+    return count, lowest, jax.lax.cond(count > 0, vector, lambda: jnp.zeros(n, d.dtype))
 
 
 def chi2_survival(statistic: float, dof: float) -> float:

@@ -200,8 +200,10 @@ def assess(rod, length, end: EndCondition, N, transfers, end_position, largest_m
     H, free = second_variation(rod, length, end, N, end_position, transfers)
     defined_H = jnp.all(jnp.isfinite(H))
     # Only the bottom of the spectrum is needed: the count below the neutral band, the
-    # lowest eigenvalue and its vector (NaN-free input: a failed integration is masked below).
-    index, margin, vector = lowest_eigenpair(jnp.where(defined_H, H, jnp.eye(H.shape[0], dtype=H.dtype)), -NEUTRAL * (p / 16) ** 2)
+    # lowest eigenvalue and, where unstable, its vector (NaN-free input: a failed
+    # integration is masked below).
+    H = jnp.where(defined_H, H, jnp.eye(H.shape[0], dtype=H.dtype))
+    index, margin, vector = lowest_eigenpair(H, -NEUTRAL * (p / 16) ** 2, vector_only_below=True)
     # The most unstable direction as the start-wrench change that produces it to first
     # order (the first free node's variation through the first piece's B^{-1}), scaled to a
     # largest node rotation (or displacement / L) of `UNSTABLE_STEP`.

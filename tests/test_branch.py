@@ -114,10 +114,11 @@ def test_buckled_strip_turned_in_its_plane_folds():
     assert not bool(beyond.ok) or float(jnp.linalg.norm(beyond.force - fold.force)) > 0.05 * float(jnp.linalg.norm(fold.force))
 
 
-def test_the_first_point_is_newtons_from_the_default_guess_where_that_is_stable(monkeypatch):
+def test_the_first_point_is_newtons_from_the_default_guess_where_that_is_stable(monkeypatch, compilations):
     """From the default guess the first point is the corrector's, with no solve of
-    `solve_boundary_value`, where it lands on a stable equilibrium; beyond the first
-    critical load the straight column it lands on is unstable, and the branch starts where
+    `solve_boundary_value`, where it lands on a stable equilibrium (its guess and stability
+    test the very programs a solve then finds compiled); beyond the first critical load the
+    straight column it lands on is unstable, and the branch starts where
     `solve_boundary_value` lands from that guess: the buckled column, stable."""
     from helixrod._bvp import _branch
 
@@ -133,6 +134,9 @@ def test_the_first_point_is_newtons_from_the_default_guess_where_that_is_stable(
     assert solves == [] and np.all(np.asarray(below.instability_index) == 0)
     np.testing.assert_allclose(below.force[0], [0.0, 0.0, -1.0], atol=1e-12)
     np.testing.assert_allclose(below.end_position[0], [0.0, 0.0, L], atol=1e-12)  # straight
+    compilations.clear()
+    helixrod.solve_boundary_value(rod, L, end=compressive(jnp.asarray(1.25)), stability_pieces=8)
+    assert not {"as_warm_start", "_stability_where_solved"} & {name for _, name in compilations}
     beyond = helixrod.follow_branch(rod, L, compressive, (3.0, 3.2), stability_pieces=8)
     assert len(solves) == 1
     direct = helixrod.solve_boundary_value(rod, L, end=compressive(jnp.asarray(3.0)), stability_pieces=8)

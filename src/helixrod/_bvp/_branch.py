@@ -385,7 +385,7 @@ def follow_branch(
         # Newton's corrector from the default guess (exact for a Loaded end about a fixed
         # point), kept where it lands on a stable equilibrium, as `solve_boundary_value`
         # keeps its solve from that guess: the first call compiles no solve of its own.
-        warm = as_warm_start(rod, jnp.asarray(length, dtype), start, probe.condition(), None, options)
+        warm = as_warm_start(rod, length, start, type(probe).condition(probe), None, options, "helix")  # as the solve calls it
         problem = problem_at(warm.node_position, warm.node_frame)
         trial, heading = first_point(warm.force, warm.moment0, problem)
         if bool(trial["converged"]) and (int(trial["index"]) == 0 or options.stability_pieces == 0):

@@ -326,9 +326,9 @@ def compile_ahead(fun, *args, **kwargs):
     program compiled, this traces and lowers it again for nothing (JAX's caches make that
     fast, not free).  Returns None, starting nothing, where `fun` would not compile a
     top-level program of its own (inside a caller's transformation, not on the CPU), for a
-    function of `filter_jit`, while a compilation of `fun` for the same arguments' types is
-    running, where tracing fails (the call raises that error itself), and on one core (`cores`), where
-    nothing runs beside the caller."""
+    function of `filter_jit`, while a compilation of `fun` for the same arguments' types
+    is running, where tracing fails (the call raises that error itself), and on one core
+    (`cores`), where nothing runs beside the caller."""
     ahead = getattr(fun, "compile_ahead", None)
     return None if ahead is None else ahead(*args, **kwargs)
 

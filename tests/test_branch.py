@@ -163,8 +163,8 @@ def test_bad_arguments_are_named():
 @pytest.mark.heavy
 def test_a_first_branch_compiles_its_corrector_beside_the_first_solve(compilations, monkeypatch):
     """The corrector step (`_point`) compiles on a thread of its own from the specs of its
-    state while the first point is solved, and the points' stability test is the program
-    that first solve compiles beside it (one compilation of each, on their threads; a test
+    state, and the points' stability test on another from the corrector's output structure,
+    while the first point's guess is made (one compilation of each, on their threads; a test
     of 10 pieces that no other test compiles); every point is tested."""
     from helixrod import _compile
 

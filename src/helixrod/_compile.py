@@ -222,7 +222,7 @@ def _call_signature(args, kwargs) -> tuple:
 
     def part(leaf):
         if isinstance(leaf, (jax.Array, np.ndarray, np.generic, jax.ShapeDtypeStruct, int, float, complex)):
-            return jnp.shape(leaf), jnp.result_type(leaf)
+            return _shape_of(leaf)
         try:
             hash(leaf)
         except TypeError:
@@ -359,7 +359,12 @@ def once_per_signature(signature):
 def leaf_shapes(tree) -> tuple:
     """(shape, dtype) of every leaf of `tree`, JAX's promotion applied: the part of a
     `once_per_signature` key that says which arrays the programs are compiled for."""
-    return tuple((jnp.shape(a), jnp.result_type(a)) for a in jax.tree.leaves(tree))
+    return tuple(_shape_of(a) for a in jax.tree.leaves(tree))
+
+
+def _shape_of(leaf) -> tuple:
+    """(shape, dtype) of an array-like leaf, JAX's promotion applied."""
+    return jnp.shape(leaf), jnp.result_type(leaf)
 
 
 def committed_placement(tree):

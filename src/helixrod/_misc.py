@@ -455,7 +455,6 @@ def lowest_eigenpair(A: ArrayLike, shift: ArrayLike, vector_only_below: bool = F
 
     lo, hi, _ = jax.lax.while_loop(wide, bisect, (lo, hi, jnp.zeros((), jnp.int32)))
     lowest = 0.5 * (lo + hi)
-    index = jnp.arange(n)
 
     def vector():
         # Inverse iteration from a start with no special symmetry.
@@ -464,6 +463,8 @@ def lowest_eigenpair(A: ArrayLike, shift: ArrayLike, vector_only_below: bool = F
             x = _shifted_tridiagonal_solve(d - lowest, lower, upper, x, pivmin)
             x = x / jnp.max(jnp.abs(x))
             x = x / jnp.linalg.norm(x)
+
+        index = jnp.arange(n)
 
         def reflect(k, x):
             # Q = H_0 H_1 ... H_{n-2}, H_i = I - tau_i v_i v_i^T, v_i = (0.., 1 at i+1, reflectors[i+2:, i]).

@@ -380,23 +380,7 @@ def follow_branch(
             raise ValueError(f"{owner}: switch comes from a branch of another number of segments")
 
     _compile_point_ahead(rod, jnp.asarray(length, dtype), start, end_at, options, k)
-    here = None
-    if switch is None and guess is None and options.continuation == 0:
-        # Newton's corrector from the default guess (exact for a Loaded end about a fixed
-        # point), kept where it lands on a stable equilibrium, as `solve_boundary_value`
-        # keeps its solve from that guess: the first call compiles no solve of its own.
-        warm = as_warm_start(rod, length, start, type(probe).condition(probe), None, options, "helix")  # as the solve calls it
-        problem = problem_at(warm.node_position, warm.node_frame)
-        trial, heading = first_point(warm.force, warm.moment0, problem)
-        if bool(trial["converged"]) and (int(trial["index"]) == 0 or options.stability_pieces == 0):
-            here, problem = rebased(trial, problem)
-    if here is None and switch is None:
-        sol = solve_boundary_value(rod, length, start=start, end=probe, guess=guess, options=options)
-        if sol.segments != k:
-            raise ValueError(f"{owner}: the first solve used {sol.segments} segments; give segments=")
-        problem = problem_at(sol.node_position, sol.node_frame)
-        here, heading = first_point(sol.force, sol.moment0, problem)
-    elif switch is not None:
+    if switch is not None:
         z, heading = np.array(switch.state, dtype), float(direction) * np.asarray(switch.direction, dtype)
         problem = problem_at(switch.node_position, switch.node_frame)
         problem = eqx.tree_at(lambda p: p.scale, problem, jnp.asarray(scale, dtype))
@@ -404,6 +388,23 @@ def follow_branch(
         z[6:-1] = 0.0
         z[-1] = float(switch.parameter) / scale
         here = solve_point(z, heading, heading @ z, heading, problem)
+    else:
+        here = None
+        if guess is None and options.continuation == 0:
+            # Newton's corrector from the default guess (exact for a Loaded end about a fixed
+            # point), kept where it lands on a stable equilibrium, as `solve_boundary_value`
+            # keeps its solve from that guess: the first call compiles no solve of its own.
+            warm = as_warm_start(rod, length, start, type(probe).condition(probe), None, options, "helix")  # as the solve calls it
+            problem = problem_at(warm.node_position, warm.node_frame)
+            trial, heading = first_point(warm.force, warm.moment0, problem)
+            if bool(trial["converged"]) and (int(trial["index"]) == 0 or options.stability_pieces == 0):
+                here, problem = rebased(trial, problem)
+        if here is None:
+            sol = solve_boundary_value(rod, length, start=start, end=probe, guess=guess, options=options)
+            if sol.segments != k:
+                raise ValueError(f"{owner}: the first solve used {sol.segments} segments; give segments=")
+            problem = problem_at(sol.node_position, sol.node_frame)
+            here, heading = first_point(sol.force, sol.moment0, problem)
     if not bool(here["converged"]):
         raise ValueError(f"{owner}: the first point is not an equilibrium (residual above tolerance)")
     if switch is not None:

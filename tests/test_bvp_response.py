@@ -131,6 +131,16 @@ def test_rotation_response_agrees_with_force_extension():
     np.testing.assert_allclose(gripped.extension, 1.05 * h0, atol=1e-9)
     np.testing.assert_allclose(gripped.force, gripped.bulk_force, rtol=0.1)
     assert np.all(np.diff(np.asarray(gripped.moment)) > 0)
+    # A first point three whole turns past the unloaded end: the curve starts from the bulk
+    # helix with those turns, its interior nodes turned as far (the end frame alone does not
+    # count them), and finds the twisted spring the bulk predicts (before: an untwisted one,
+    # its moment ~0, reported at the rotation asked for).
+    longer = 5 * TURN
+    held = longer * SPRING_NORM + 3 * 2 * np.pi + jnp.array([0.0, 0.5, 1.0, 1.5])
+    turned = hr.rotation_response(SPRING, longer, held, force=0.01, segments=4)
+    assert bool(jnp.all(turned.ok))
+    np.testing.assert_allclose(turned.moment, turned.bulk_moment, rtol=0.01)
+    np.testing.assert_allclose(turned.extension, turned.bulk_extension, rtol=0.01)
 
 
 def test_response_curve_flags_a_bad_point_without_spoiling_the_others():

@@ -189,16 +189,18 @@ def _independent_points(rod, length, kind, values, hints, options: BoundaryValue
 
 def _continuation_start(rod, length, kind, values, options: BoundaryValueOptions, guess):
     """The carry of continuation mode before the first point `values[0]` (4,): its warm
-    start (from `guess` where that solve succeeds, else the default), the unloaded bulk
-    guess, and the rotation near which its whole turns are counted."""
+    start (from `guess` where that solve succeeds, else the default, made from the first
+    point's bulk helix: with the whole turns of a rotation held there, which the end frame
+    alone does not count), the unloaded bulk guess, and the rotation near which its whole
+    turns are counted."""
     first = values[0]
     start, theta0, unloaded = _curve_setup(rod, length)
     first_end = axial_end_condition(rod, length, kind, first)
-    guess0 = no_gradient(default_warm_start(rod, length, start, first_end, options.segments, "helix"))
+    bulk0 = bulk_helix_at(rod, length, jnp.asarray(CONTROL_INDEX)[kind], first, unloaded)
+    guess0 = no_gradient(default_warm_start(rod, length, start, first_end, options.segments, "helix", bulk0))
     if guess is not None:
         solved = no_gradient(solve(rod, length, start, first_end, guess, None, options, test_stability=False))
         guess0 = jax.tree.map(lambda a, b: jnp.where(solved.ok, a, b), solved.warm_start(), guess0)
-    bulk0 = bulk_helix_at(rod, length, jnp.asarray(CONTROL_INDEX)[kind], first, unloaded)
     return guess0, unloaded, jnp.where(bulk0.ok, bulk0.rotation, theta0)
 
 
@@ -433,7 +435,8 @@ def _response(
     guess, guess_kind = parse_guess(guess, owner)
     if guess_kind != "helix":
         raise ValueError(f"{owner}: guess must be None, a BoundaryValueSolution or (n0, m0)")
-    guess = fit_guess(guess, options.segments, unloaded_clamp(rod))
+    if guess is not None:  # (no clamp program to compile without a guess)
+        guess = fit_guess(guess, options.segments, unloaded_clamp(rod))
     hints = None
     if rotation_hint is not None or not bulk:
         if mode != "independent":

@@ -440,9 +440,12 @@ def free_nodes(rod, length, start, k, twist=0.0, stretch=0.0):
     return x_c @ R_g.T + x_g[None], jnp.einsum("ij,kjl->kil", R_g, turn @ frame_c)
 
 
-def _axial_guess(rod, length, start, end: EndCondition, guess_kind: str):
+def _axial_guess(rod, length, start, end: EndCondition, guess_kind: str, bulk=None):
     """(N, M0, twist, stretch): initial wrench and axial deformation of the nodes, from the
-    uniform helix with the end's axial extension (or force) and rotation."""
+    uniform helix with the end's axial extension (or force) and rotation -- the end frame's
+    twist, within half a turn of the unloaded end's -- or `bulk`: that helix already solved at
+    the end's controls (e.g. a response curve's own prediction, whose rotation counts whole
+    turns too, and so do the nodes then)."""
     R_g, x_g = _placement(rod, start)
     axis = R_g[:, 2]
     h0, theta0 = unloaded_observables(rod, length)
@@ -459,7 +462,10 @@ def _axial_guess(rod, length, start, end: EndCondition, guess_kind: str):
     index = jnp.asarray(CONTROL_INDEX)[jnp.where(loaded, 0, end.kind)]
     values = jnp.stack([end.force @ axis, 0.0 * h0, h0 + stretch_clamped, theta0 + twist])
     if guess_kind == "helix":
-        bulk = bulk_helix_at(rod, length, index, values, max_steps=24, light=True)
+        if bulk is None:
+            bulk = bulk_helix_at(rod, length, index, values, max_steps=24, light=True)
+        else:
+            twist = jnp.where(loaded | ~bulk.ok, twist, bulk.rotation - theta0)
         force = jnp.where(bulk.ok, bulk.force, 0.0)
         moment = jnp.where(bulk.ok, bulk.moment, 0.0)
         stretch_tweezer = jnp.where(bulk.ok, bulk.extension - h0, 0.0)
@@ -471,9 +477,10 @@ def _axial_guess(rod, length, start, end: EndCondition, guess_kind: str):
     return N, M0, twist, stretch
 
 
-def default_warm_start(rod, length, start, end: EndCondition, k: int, guess_kind: str) -> WarmStart:
-    """The default guess (`_axial_guess` and the nodes it deforms) as a `WarmStart`."""
-    N, M0, twist, stretch = _axial_guess(rod, length, start, end, guess_kind)
+def default_warm_start(rod, length, start, end: EndCondition, k: int, guess_kind: str, bulk=None) -> WarmStart:
+    """The default guess (`_axial_guess`, `bulk` as there, and the nodes it deforms) as a
+    `WarmStart`."""
+    N, M0, twist, stretch = _axial_guess(rod, length, start, end, guess_kind, bulk)
     xs, frames = free_nodes(rod, length, start, k, twist, stretch)
     return WarmStart(N, M0, xs[:k], frames[:k])
 

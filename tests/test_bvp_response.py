@@ -141,6 +141,14 @@ def test_rotation_response_agrees_with_force_extension():
     assert bool(jnp.all(turned.ok))
     np.testing.assert_allclose(turned.moment, turned.bulk_moment, rtol=0.01)
     np.testing.assert_allclose(turned.extension, turned.bulk_extension, rtol=0.01)
+    # A single solve finds that spring from the bulk helix's wrench (`axial_ends`' docstring).
+    start, end = hr.axial_ends(SPRING, longer, force=0.01, rotation=float(held[0]))
+    bulk = hr.bulk_helix(SPRING, longer, force=0.01, rotation=float(held[0]))
+    e3 = jnp.array([0.0, 0.0, 1.0])
+    guess = (start.frame.T @ (bulk.force * e3), start.frame.T @ (bulk.moment * e3))
+    single = hr.solve_boundary_value(SPRING, longer, start=start, end=end, segments=4, guess=guess)
+    axial_moment = single.moment0[2] + jnp.cross(single.node_position[0], single.force)[2]
+    np.testing.assert_allclose(axial_moment, turned.moment[0], rtol=1e-8)
 
 
 def test_response_curve_flags_a_bad_point_without_spoiling_the_others():

@@ -255,6 +255,13 @@ def axial_ends(
     and `rotation` $\\Theta$ the total end rotation about the axis, as in `spring_compliance`
     (unloaded: $h_0 = L\\hat\\tau/|\\hat u|$, $\\Theta_0 = L|\\hat u|$, so `rotation=Θ0` means
     "not turned"; $F$ along $e_z$, a pull for $\\hat\\tau > 0$).  Scalars, traced allowed.
+
+    The end frame holds $\\Theta$ only up to whole turns, and `solve_boundary_value`'s default
+    guess turns the rod within half a turn of its unloaded end.  A rod held whole turns past
+    it needs a guess with those turns: the lab wrench $(F e_z, M e_z)$ of
+    `bulk_helix(rod, length, force=F, rotation=Θ)` as `guess=(start.frame.T @ n, start.frame.T
+    @ m)`, or a curve (`rotation_response`, whose first point starts from that helix and whose
+    continuation counts the turns).
     """
     try:
         name, given = axial_controls(force=force, moment=moment, extension=extension, rotation=rotation)

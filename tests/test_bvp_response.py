@@ -149,6 +149,11 @@ def test_rotation_response_agrees_with_force_extension():
     single = hr.solve_boundary_value(SPRING, longer, start=start, end=end, segments=4, guess=guess)
     axial_moment = single.moment0[2] + jnp.cross(single.node_position[0], single.force)[2]
     np.testing.assert_allclose(axial_moment, turned.moment[0], rtol=1e-8)
+    # Its stability: the curve's 16 pieces do not resolve that wrench; tested again on more,
+    # as the single solve is, the same unstable spring (a plectoneme is nearer).
+    assert turned.solutions.stability_pieces == single.stability_pieces > DEFAULT_OPTIONS.stability_pieces
+    assert int(turned.instability_index[0]) == int(single.instability_index) > 0
+    np.testing.assert_allclose(turned.stability_margin[0], single.stability_margin, rtol=1e-6)
 
 
 def test_response_curve_flags_a_bad_point_without_spoiling_the_others():

@@ -34,15 +34,24 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._compile import committed_placement, compile_ahead, jit, leaf_shapes, once_per_signature
 from .._geometry import unloaded_observables, unloaded_state
 from .._lie import twist_angle, unwrap_near
-from .._misc import check_choice, finite_scalar, float_dtype, is_concrete, no_gradient
+from .._misc import check_choice, finite_scalar, float_dtype, is_concrete, no_gradient, replaced
 from .._progress import ProgressArgument, ProgressReport, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import check_one_rod
 from .._status import RESULTS, raise_if_failed, succeeded
 from ._bulk import BulkHelix, bulk_helix_at
-from ._ends import AXIAL_CONTROLS, AXIAL_OBSERVABLES, CONTROL_INDEX, LOADED, axial_controls, axial_end_condition, unloaded_clamp
+from ._ends import AXIAL_CONTROLS, AXIAL_OBSERVABLES, CONTROL_INDEX, LOADED, EndCondition, axial_controls, axial_end_condition, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
 from ._shooting import WarmStart, default_warm_start
-from ._solve import BoundaryValueSolution, fit_guess, parse_guess, solve, stability_at_points, stability_inputs, with_stability
+from ._solve import (
+    BoundaryValueSolution,
+    fit_guess,
+    parse_guess,
+    resolved_stability,
+    solve,
+    stability_at_points,
+    stability_inputs,
+    with_stability,
+)
 
 MODES = ("continuation", "independent")
 
@@ -60,7 +69,10 @@ class ResponseCurve(eqx.Module):
     `solutions` the `BoundaryValueSolution` of every point (batched, end state only).
 
     Stability per point: `stable`, `instability_index`, `stability_margin` (as
-    `BoundaryValueSolution`).  `critical`: the value of the swept control at which the
+    `BoundaryValueSolution`), tested on `options.stability_pieces` pieces and, where that
+    does not resolve a converged point's wrench, again on more, as `solve_boundary_value`
+    does (concrete inputs; under `jax.jit`/`vmap` such a point keeps index -1);
+    `solutions.stability_pieces` is the most any point was tested on.  `critical`: the value of the swept control at which the
     curve first loses stability (between the last stable point and the next, located by
     bisection on the solutions; NaN if it never does, or under `jax.jit`/`vmap`), and
     `critical_kind`: `"branch point"` (the branch goes on through it, now unstable: a
@@ -263,16 +275,44 @@ def _curve(rod, length, kind, values, options: BoundaryValueOptions, mode: str, 
     return _continuation(rod, length, kind, values, options, carry)[1]
 
 
+def _point_ends(rod, length, kind, values) -> EndCondition:
+    """The end condition of each point at its controls `values` `(n, 4)` (stacked)."""
+    return jax.vmap(lambda v: axial_end_condition(rod, length, kind, v))(values)
+
+
 def _stability_of_points(rod, length, kind, values, N, M0, xs, frames, result, options: BoundaryValueOptions):
     """The stability test of each point's solution (its `N`, `M0`, nodes and `result`) at
     its controls `values` `(n, 4)`."""
-    ends = jax.vmap(lambda v: axial_end_condition(rod, length, kind, v))(values)
-    return stability_at_points(rod, length, ends, N, M0, xs, frames, result, options)
+    return stability_at_points(rod, length, _point_ends(rod, length, kind, values), N, M0, xs, frames, result, options)
 
 
 # A program of its own: a curve's solves (whose continuation the test does not steer) and
 # their tests compile side by side at a first call (`_compile_side_by_side`).
 _points_stability = jit(_stability_of_points, trace_cache=True)
+_ends_of_points = jit(_point_ends, run_once=True)
+
+
+def _resolved(rod, length, kind, values, sols: BoundaryValueSolution, options: BoundaryValueOptions) -> BoundaryValueSolution:
+    """The curve's solutions `sols` (concrete, tested on `options.stability_pieces` pieces)
+    with each converged point whose test did not resolve its wrench (index -1) tested again
+    on more pieces, one by one, as `solve_boundary_value` does (`resolved_stability`);
+    `stability_pieces` the most any point was tested on."""
+    if sols.stability_pieces == 0:
+        return sols
+    unresolved = np.flatnonzero(succeeded(sols.result) & (np.asarray(sols.instability_index) < 0))
+    if not unresolved.size:
+        return sols
+    # On the host: each point's arrays sliced by JAX would compile a program per field.
+    points, ends = jax.device_get((sols, _ends_of_points(rod, length, kind, values)))
+    index, margin, push = (np.array(a) for a in (points.instability_index, points.stability_margin, points.unstable_direction))
+    pieces = sols.stability_pieces
+    for i in unresolved:
+        take = lambda tree: jax.tree.map(lambda a: a[i], tree)  # noqa: E731,B023
+        tested = jax.device_get(resolved_stability(rod, length, take(ends), take(points), options))
+        index[i], margin[i], push[i] = tested.instability_index, tested.stability_margin, tested.unstable_direction
+        pieces = max(pieces, tested.stability_pieces)
+    return replaced(sols, instability_index=jnp.asarray(index), stability_margin=jnp.asarray(margin),
+                    unstable_direction=jnp.asarray(push), stability_pieces=pieces)
 
 
 def _tested(rod, length, kind, values, sols: BoundaryValueSolution, options: BoundaryValueOptions) -> BoundaryValueSolution:
@@ -462,6 +502,8 @@ def _response(
                 _compile_side_by_side(rod, length, kind, values, options, mode, hints, bool(bulk), guess)
             obs, bulk_obs, sols, bulk_ok = _curve(rod, length, kind, values, options, mode, hints, bool(bulk), guess)
             sols = _tested(rod, length, kind, values, sols, options)
+    if concrete:
+        sols = _resolved(rod, length, kind, values, sols, options)
     curve = ResponseCurve(
         controls=name,
         swept=swept,

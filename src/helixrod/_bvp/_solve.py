@@ -558,6 +558,24 @@ def _status(sol: BoundaryValueSolution) -> tuple[bool, int]:
     return bool(succeeded(result)), int(index)
 
 
+def resolved_stability(rod, length, end: EndCondition, sol: BoundaryValueSolution, options: BoundaryValueOptions) -> BoundaryValueSolution:
+    """`sol` (one concrete solution at `end`, tested on `options.stability_pieces` pieces)
+    tested again while the test does not resolve its wrench (a converged point of index -1):
+    on twice the pieces or as many as its wrench asks (`stability_pieces_for`), up to
+    `MAX_STABILITY_PIECES` (`restability`); not where the end is loaded by a moment, whose
+    stability is not defined."""
+    moment_loaded = int(end.kind) == LOADED and bool(np.any(np.asarray(end.moment) != 0))
+    pieces = options.stability_pieces
+    while not moment_loaded and 0 < pieces < MAX_STABILITY_PIECES:
+        ok, index = _status(sol)
+        if not (ok and index < 0):
+            break
+        pieces = min(max(2 * pieces, _solution_pieces(rod, length, sol)), MAX_STABILITY_PIECES)
+        options = dataclasses.replace(options, stability_pieces=pieces)
+        sol = restability(rod, length, end, sol, options)
+    return sol
+
+
 def _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind) -> BoundaryValueSolution:
     """The eager defaults that make a solve land on the physical state: more stability
     pieces where the test does not resolve the wrench, and, from the default guess, when
@@ -566,23 +584,11 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
     intrinsically straight rod between clamps brought closer than its length, the first
     buckled mode (`buckled_guess`), then homotopy continuation from the unloaded rod
     (`FALLBACK_CONTINUATION`)."""
-    moment_loaded = int(end.kind) == LOADED and bool(np.any(np.asarray(end.moment) != 0))
-
-    def resolved(sol, options):
-        pieces = options.stability_pieces
-        while not moment_loaded and 0 < pieces < MAX_STABILITY_PIECES:
-            ok, index = _status(sol)
-            if not (ok and index < 0):
-                break
-            pieces = min(max(2 * pieces, _solution_pieces(rod, length, sol)), MAX_STABILITY_PIECES)
-            options = dataclasses.replace(options, stability_pieces=pieces)
-            sol = restability(rod, length, end, sol, options)
-        return sol
 
     def solved(guess, options):
-        return resolved(solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind), options)
+        return resolved_stability(rod, length, end, solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind), options)
 
-    sol = resolved(sol, options)
+    sol = resolved_stability(rod, length, end, sol, options)
 
     def acceptable(trial) -> bool:
         ok, index = _status(trial)

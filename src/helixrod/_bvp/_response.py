@@ -531,7 +531,8 @@ CRITICAL_BISECTIONS = 40
 
 def _first_loss_of_stability(rod, length, kind, values, swept, sols, options):
     """(critical value of the swept control, kind) of the first stable -> unstable step of
-    a continuation curve, by bisection: each trial solve starts from the stable side.  A
+    a continuation curve, by bisection: each trial solve starts from the stable side (its
+    stability resolved as the points' are, `resolved_stability`).  A
     branch point if the last unstable trial converged next to the stable side, a fold if
     it did not converge or jumped away (no equilibrium nearby beyond it)."""
     ok = succeeded(sols.result)  # on the host: no one-operation programs to compile
@@ -549,7 +550,8 @@ def _first_loss_of_stability(rod, length, kind, values, swept, sols, options):
     first = distance(good, bad)
     for _ in range(CRITICAL_BISECTIONS):
         mid = 0.5 * (a + b)
-        trial = solve(rod, length, start, axial_end_condition(rod, length, kind, mid), good.warm_start(), None, options)
+        end = axial_end_condition(rod, length, kind, mid)
+        trial = resolved_stability(rod, length, end, solve(rod, length, start, end, good.warm_start(), None, options), options)
         if bool(trial.ok) and float(trial.stability_margin) > 0:
             a, good = mid, trial
         else:

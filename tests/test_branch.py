@@ -37,7 +37,7 @@ def euler():
 
 @pytest.mark.heavy
 def test_straight_column_branch_points_and_index(euler):
-    _, straight = euler
+    rod, straight = euler
     assert straight.message.startswith("reached the end")
     assert float(straight.parameter[-1]) == pytest.approx(4.0, rel=1e-12)
     points = straight.points("branch point")
@@ -54,6 +54,12 @@ def test_straight_column_branch_points_and_index(euler):
     # Every point is the straight column: N = (0, 0, -P), no moment.
     np.testing.assert_allclose(np.asarray(straight.force)[:, 2], -P, rtol=1e-10)
     assert np.max(np.abs(np.asarray(straight.moment0))) < 1e-9
+    # On one piece the test does not resolve the load (index -1 everywhere, before): each
+    # point is tested again on the pieces its wrench asks, as `solve_boundary_value` does.
+    coarse = helixrod.follow_branch(rod, L, compressive, (1.0, 4.0), stability_pieces=1)
+    coarse_index = np.asarray(coarse.instability_index)
+    P = np.asarray(coarse.parameter)
+    assert np.array_equal(coarse_index, (P > first).astype(int) + (P > second).astype(int))
 
 
 @pytest.mark.heavy

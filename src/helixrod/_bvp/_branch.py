@@ -49,7 +49,7 @@ from ._bulk import residual_scales
 from ._ends import AbstractEnd, Clamped, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
 from ._shooting import ShootingArgs, linearised_equations, residual_and_flows
-from ._solve import as_warm_start, ode_tolerances, solve_boundary_value, stability_of_nodes
+from ._solve import as_warm_start, ode_tolerances, resolved_test, solve_boundary_value, stability_of_nodes
 
 #: Special points a branch reports.
 SPECIAL_KINDS = ("fold", "branch point")
@@ -289,7 +289,8 @@ def follow_branch(
       units of $\\bar K/\\ell^2$ and moments of $\\bar K/\\ell$, as the residual scales of
       `BoundaryValueOptions.atol`; the parameter in units of the width of the interval).
     - `options`, `segments`, `stability_pieces`: as `solve_boundary_value` (the stability of
-      every point costs about a solve; `stability_pieces=0` turns it off).
+      every point costs about a solve, and where these pieces do not resolve a point's
+      wrench it is tested again on more, as there; `stability_pieces=0` turns it off).
 
     Returns a `Branch`.  Eager (a Python loop over compiled steps): one compilation per
     load and options; two `end` functions that trace to the same operations and constants
@@ -351,10 +352,10 @@ def follow_branch(
         host = jax.device_get({name: record[name] for name in ("z", "tangent", "sign", "steps", "converged")})
         index, margin = np.asarray(-1, np.int32), np.asarray(np.nan, dtype)
         if with_stability and options.stability_pieces > 0 and host["converged"]:
-            tested = stability_of_nodes(
-                rod, problem.length, record["end"], record["force"], record["moment0"], record["xs"], record["frames"],
-                RESULTS.successful, options,
-            )
+            inputs = (record["force"], record["moment0"], record["xs"], record["frames"], RESULTS.successful)
+            tested = stability_of_nodes(rod, problem.length, record["end"], *inputs, options)
+            # More pieces where these do not resolve the wrench, as `solve_boundary_value` takes.
+            tested, _ = resolved_test(rod, problem.length, record["end"], inputs, tested, options, record["end_position"])
             index, margin = jax.device_get(tested[:2])
         return dict(record, **host, index=index, margin=margin)
 

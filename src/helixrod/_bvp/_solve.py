@@ -545,10 +545,13 @@ def stability_pieces_for(rod, length, force, moments) -> int:
     return int(2 ** np.ceil(np.log2(max(1.0, 1.25 * rate * float(length) / PIECE_RESOLUTION))))
 
 
-def _solution_pieces(rod, length, sol: BoundaryValueSolution) -> int:
-    """`stability_pieces_for` the wrench of a solution (its shooting nodes and end)."""
-    moments = sol.moment0[None] - jnp.cross(sol.node_position - sol.node_position[0][None], sol.force[None])
-    return stability_pieces_for(rod, length, sol.force, jnp.concatenate([moments, sol.end_moment[None]]))
+def wrench_pieces(rod, length, force, moment0, node_position, end_position) -> int:
+    """`stability_pieces_for` the wrench of an equilibrium: lab force `force`, lab moment
+    `moment0` at s = 0 and the moments it makes about its shooting nodes and its end (the
+    lab moment about a point moves with the point)."""
+    points = jnp.concatenate([node_position, end_position[None]])
+    moments = moment0[None] - jnp.cross(points - node_position[0][None], force[None])
+    return stability_pieces_for(rod, length, force, moments)
 
 
 def _status(sol: BoundaryValueSolution) -> tuple[bool, int]:
@@ -558,22 +561,36 @@ def _status(sol: BoundaryValueSolution) -> tuple[bool, int]:
     return bool(succeeded(result)), int(index)
 
 
+def _moment_loaded(end: EndCondition) -> bool:
+    """Whether a concrete end is loaded by a moment (whose stability is not defined)."""
+    kind, moment = jax.device_get((end.kind, end.moment))
+    return int(kind) == LOADED and bool(np.any(moment != 0))
+
+
+def resolved_test(rod, length, end: EndCondition, inputs: tuple, tested: tuple, options: BoundaryValueOptions, end_position):
+    """`(test, pieces)`: the stability test `tested` = (index, margin, push) of one concrete
+    equilibrium at `end` (`inputs` = its `stability_inputs`, its end at `end_position`) on
+    `options.stability_pieces` pieces, and again while that does not resolve its wrench (a
+    converged point of index -1): on twice the pieces or as many as the wrench asks
+    (`wrench_pieces`), up to `MAX_STABILITY_PIECES` (`stability_of_nodes`); not where the end
+    is loaded by a moment, whose stability is not defined."""
+    pieces = options.stability_pieces
+    while 0 < pieces < MAX_STABILITY_PIECES:
+        result, index = jax.device_get((inputs[-1], tested[0]))
+        if not (bool(succeeded(result)) and int(index) < 0) or _moment_loaded(end):
+            break
+        needed = wrench_pieces(rod, length, inputs[0], inputs[1], inputs[2], end_position)
+        pieces = min(max(2 * pieces, needed), MAX_STABILITY_PIECES)
+        tested = stability_of_nodes(rod, length, end, *inputs, dataclasses.replace(options, stability_pieces=pieces))
+    return tested, pieces
+
+
 def resolved_stability(rod, length, end: EndCondition, sol: BoundaryValueSolution, options: BoundaryValueOptions) -> BoundaryValueSolution:
     """`sol` (one concrete solution at `end`, tested on `options.stability_pieces` pieces)
-    tested again while the test does not resolve its wrench (a converged point of index -1):
-    on twice the pieces or as many as its wrench asks (`stability_pieces_for`), up to
-    `MAX_STABILITY_PIECES` (`restability`); not where the end is loaded by a moment, whose
-    stability is not defined."""
-    moment_loaded = int(end.kind) == LOADED and bool(np.any(np.asarray(end.moment) != 0))
-    pieces = options.stability_pieces
-    while not moment_loaded and 0 < pieces < MAX_STABILITY_PIECES:
-        ok, index = _status(sol)
-        if not (ok and index < 0):
-            break
-        pieces = min(max(2 * pieces, _solution_pieces(rod, length, sol)), MAX_STABILITY_PIECES)
-        options = dataclasses.replace(options, stability_pieces=pieces)
-        sol = restability(rod, length, end, sol, options)
-    return sol
+    with its test resolved (`resolved_test`)."""
+    tested = (sol.instability_index, sol.stability_margin, sol.unstable_direction)
+    tested, pieces = resolved_test(rod, length, end, stability_inputs(sol), tested, options, sol.end_position)
+    return sol if pieces == options.stability_pieces else with_stability(sol, tested, pieces)
 
 
 def _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind) -> BoundaryValueSolution:

@@ -204,6 +204,27 @@ def test_axial_response_with_both_controls_varying_equals_force_extension(mode, 
     assert float(jnp.ptp(both.moment)) > 1e-3 and float(jnp.ptp(both.extension)) > 1e-2
 
 
+@pytest.mark.heavy
+def test_independent_points_start_from_their_bulk_helix():
+    """In independent mode each point starts from the default guess made from its own bulk
+    helix (as a continuation's first point): a spring held three whole turns past its
+    unloaded end is the twisted spring the bulk predicts (before: untwisted, its moment ~0);
+    near the unloaded end, the continuation curve's points.  (The 4-point, 4-segment
+    independent program of tests/test_progress.py.)"""
+    longer = 5 * TURN
+    theta0 = longer * SPRING_NORM
+    held = theta0 + 3 * 2 * np.pi + jnp.array([0.0, 0.5, 1.0, 1.5])
+    turned = hr.rotation_response(SPRING, longer, held, force=0.01, segments=4, mode="independent")
+    assert bool(jnp.all(turned.ok))
+    np.testing.assert_allclose(turned.moment, turned.bulk_moment, rtol=0.01)
+    np.testing.assert_allclose(turned.extension, turned.bulk_extension, rtol=0.01)
+    near = theta0 + jnp.array([-0.5, 0.0, 0.5, 1.0])
+    independent = hr.rotation_response(SPRING, longer, near, force=0.01, segments=4, mode="independent")
+    continued = hr.rotation_response(SPRING, longer, near, force=0.01, segments=4)
+    for name in ("moment", "extension", "rotation"):
+        np.testing.assert_allclose(getattr(independent, name), getattr(continued, name), rtol=0, atol=1e-8)
+
+
 @pytest.mark.slow  # compiles the independent-mode curve without bulk (~15 s on 2 busy cores)
 def test_axial_response_rotation_hint_and_no_bulk():
     """Force and moment held (a Loaded end: the rotation responds), independent points.

@@ -183,14 +183,18 @@ def _observe(rod, length, kind, sol, bulk, v, hint):
 
 
 def _independent_points(rod, length, kind, values, hints, options: BoundaryValueOptions, with_bulk: bool, guess):
-    """Independent mode: every point from `guess` (as `solve`), vmapped."""
+    """Independent mode: every point from `guess` (as `solve`; the default guess made from
+    the point's bulk helix where that is solved, as in continuation mode), vmapped."""
     start, theta0, unloaded = _curve_setup(rod, length)
     index = jnp.asarray(CONTROL_INDEX)[kind]
 
     def one(v, hint):
         end = axial_end_condition(rod, length, kind, v)
-        sol = solve(rod, length, start, end, guess, None, options, test_stability=False)
         bulk = bulk_helix_at(rod, length, index, v, unloaded) if with_bulk else _no_bulk(values.dtype)
+        start_from = guess
+        if guess is None and with_bulk:
+            start_from = no_gradient(default_warm_start(rod, length, start, end, options.segments, "helix", bulk))
+        sol = solve(rod, length, start, end, start_from, None, options, test_stability=False)
         if hint is None:
             hint = jnp.where(bulk.ok, bulk.rotation, theta0)
         obs, bulk_obs = _observe(rod, length, kind, sol, bulk, v, hint)

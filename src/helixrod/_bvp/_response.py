@@ -72,10 +72,10 @@ class ResponseCurve(eqx.Module):
     `BoundaryValueSolution`), tested on `options.stability_pieces` pieces and, where that
     does not resolve a converged point's wrench, again on more, as `solve_boundary_value`
     does (concrete inputs; under `jax.jit`/`vmap` such a point keeps index -1);
-    `solutions.stability_pieces` is the most any point was tested on.  `critical`: the value of the swept control at which the
-    curve first loses stability (between the last stable point and the next, located by
-    bisection on the solutions; NaN if it never does, or under `jax.jit`/`vmap`), and
-    `critical_kind`: `"branch point"` (the branch goes on through it, now unstable: a
+    `solutions.stability_pieces` is the most any point was tested on.  `critical`: the
+    value of the swept control at which the curve first loses stability (between the last
+    stable point and the next, located by bisection on the solutions; NaN if it never
+    does, or under `jax.jit`/`vmap`), and `critical_kind`: `"branch point"` (the branch goes on through it, now unstable: a
     bifurcation, as Euler's), `"fold"` (the branch ends there: no nearby equilibrium
     beyond it), or `"none"`; `critical_force`, `critical_rotation` name it.
     """

@@ -75,9 +75,10 @@ class ResponseCurve(eqx.Module):
     `solutions.stability_pieces` is the most any point was tested on.  `critical`: the
     value of the swept control at which the curve first loses stability (between the last
     stable point and the next, located by bisection on the solutions; NaN if it never
-    does, or under `jax.jit`/`vmap`), and `critical_kind`: `"branch point"` (the branch goes on through it, now unstable: a
-    bifurcation, as Euler's), `"fold"` (the branch ends there: no nearby equilibrium
-    beyond it), or `"none"`; `critical_force`, `critical_rotation` name it.
+    does, or under `jax.jit`/`vmap`), and `critical_kind`: `"branch point"` (the branch
+    goes on through it, now unstable: a bifurcation, as Euler's), `"fold"` (the branch ends
+    there: no nearby equilibrium beyond it), or `"none"`; `critical_force`,
+    `critical_rotation` name it.
     """
 
     controls: str = eqx.field(static=True)

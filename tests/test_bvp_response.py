@@ -141,7 +141,8 @@ def test_rotation_response_agrees_with_force_extension():
     assert bool(jnp.all(turned.ok))
     np.testing.assert_allclose(turned.moment, turned.bulk_moment, rtol=0.01)
     np.testing.assert_allclose(turned.extension, turned.bulk_extension, rtol=0.01)
-    # A single solve finds that spring from the bulk helix's wrench (`axial_ends`' docstring).
+    # A single solve finds that spring from the bulk helix's wrench (from the default guess,
+    # which aims at it too, `solve_boundary_value` goes on to a stable state: this one is not).
     start, end = hr.axial_ends(SPRING, longer, force=0.01, rotation=float(held[0]))
     bulk = hr.bulk_helix(SPRING, longer, force=0.01, rotation=float(held[0]))
     e3 = jnp.array([0.0, 0.0, 1.0])

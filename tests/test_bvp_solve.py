@@ -150,6 +150,26 @@ def test_unloaded_axial_ends_solve_to_the_unloaded_helix():
         np.testing.assert_allclose(sol.x, hr.helix_centreline(1.0, 0.3, sol.s), atol=1e-9)
 
 
+def test_axial_ends_carry_the_whole_turns_to_the_default_guess():
+    """The end frame holds the rotation only up to whole turns; `axial_ends` also gives the
+    end its total rotation, and the default guess turns the rod by as much: a spring held
+    one turn past its unloaded end under a pull is the twisted spring the bulk predicts
+    (stable), where the frame alone gives the untwisted one (also an equilibrium)."""
+    length = 5 * TURN
+    rotation = length * SPRING_NORM + 2 * np.pi
+    start, end = hr.axial_ends(SPRING, length, force=0.05, rotation=rotation)
+    assert float(end.rotation) == pytest.approx(rotation, rel=1e-15)
+    bulk = hr.bulk_helix(SPRING, length, force=0.05, rotation=rotation)
+    turned = hr.solve_boundary_value(SPRING, length, start=start, end=end)
+    frame_only = hr.solve_boundary_value(SPRING, length, start=start, end=hr.Tweezer(end.frame, end.force))
+    axial_moment = lambda sol: float(sol.moment0[2] + jnp.cross(sol.node_position[0], sol.force)[2])  # noqa: E731
+    assert bool(turned.stable) and bool(frame_only.stable)
+    assert axial_moment(turned) == pytest.approx(float(bulk.moment), rel=1e-3)
+    assert abs(axial_moment(frame_only)) < 0.05 * float(bulk.moment)  # untwisted: the clamps alone
+    with pytest.raises(ValueError, match="rotation must be finite"):
+        hr.Tweezer(end.frame, end.force, rotation=jnp.nan)
+
+
 def test_a_first_call_compiles_its_programs_side_by_side_once(compilations, monkeypatch):
     """An eager first call compiles the guess, the solve and its stability test each on a
     thread of its own, from specs of the values they will be called with: the calls find

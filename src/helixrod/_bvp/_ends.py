@@ -88,7 +88,10 @@ class EndCondition(AbstractEnd):
     """Any end condition in one traced form: `kind` (0 clamped, 1 loaded, 2 tweezer) and
     the data of every kind -- `position` `(3,)`, `frame` `(3, 3)`, `force` `(3,)`, `moment`
     `(3,)`, `point` `(3,)` and `about_end` (the moment of a `Loaded` end is about the end
-    itself); fields a kind does not use are zero (identity frame).  Built by
+    itself); fields a kind does not use are zero (identity frame); `rotation`: the end's
+    total rotation $\\Theta$ about the axis of the canonical placement, whole turns included,
+    where it is known (`axial_ends`, the response curves; NaN elsewhere): the frame holds it
+    only up to whole turns, and the default guess turns the rod by as much.  Built by
     `Clamped(...).condition()` and the like, or by `axial_end_condition` with a traced kind;
     a stack of them (leading axis) is what `jax.vmap` maps over for a batch of mixed ends."""
 
@@ -99,6 +102,7 @@ class EndCondition(AbstractEnd):
     moment: Float[Array, "3"]
     point: Float[Array, "3"]
     about_end: Bool[Array, ""]
+    rotation: Float[Array, ""]
 
     def condition(self) -> "EndCondition":
         return self
@@ -125,13 +129,14 @@ class EndCondition(AbstractEnd):
         )
 
     def finite(self) -> Bool[Array, ""]:
-        """Whether every value is finite."""
+        """Whether every value of the condition is finite (`rotation`, a hint, may be NaN)."""
         leaves = (self.position, self.frame, self.force, self.moment, self.point)
         return jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in leaves]))
 
 
-def end_condition(kind, position=None, frame=None, force=None, moment=None, point=None) -> EndCondition:
-    """An `EndCondition` of a (concrete) `kind` with zeros for the fields it does not use."""
+def end_condition(kind, position=None, frame=None, force=None, moment=None, point=None, rotation=None) -> EndCondition:
+    """An `EndCondition` of a (concrete) `kind` with zeros for the fields it does not use
+    (`rotation`: NaN, not known)."""
     # NumPy constants: no eager JAX dispatch per solve (they are traced like JAX arrays).
     dtype = float_dtype()
     zero = np.zeros(3, dtype)
@@ -143,6 +148,7 @@ def end_condition(kind, position=None, frame=None, force=None, moment=None, poin
         zero if moment is None else moment,
         zero if point is None else point,
         np.asarray(point is None and kind == LOADED),
+        np.asarray(np.nan, dtype) if rotation is None else rotation,
     )
     # From its leaves in field order: equinox's initialiser (~20 us) was a tenth of the
     # Python time of an eager solve, and the fields need no conversion or check.
@@ -151,31 +157,37 @@ def end_condition(kind, position=None, frame=None, force=None, moment=None, poin
 
 @functools.cache
 def _condition_structure():
-    """The pytree structure of an `EndCondition` (its seven fields are its leaves)."""
+    """The pytree structure of an `EndCondition` (its eight fields are its leaves)."""
     zero = np.zeros(3)
-    return jax.tree.structure(EndCondition(np.int32(0), zero, np.eye(3), zero, zero, zero, np.bool_(False)))
+    return jax.tree.structure(EndCondition(np.int32(0), zero, np.eye(3), zero, zero, zero, np.bool_(False), np.float64(np.nan)))
 
 
 class Clamped(AbstractEnd):
-    """Prescribed position and frame: `Clamped(position=(0, 0, 0), frame=identity)`.
+    """Prescribed position and frame: `Clamped(position=(0, 0, 0), frame=identity, *,
+    rotation=None)`.
 
     `position` `(3,)` lab point; `frame` `(3, 3)` rotation with column $i$ = $d_{i+1}$ (lab).
     The start condition of every problem, and the end condition of a rod clamped at both
-    ends (a spring test: grips that hold the wire ends).  Non-finite values or a frame that
-    is not a rotation raise `ValueError` (concrete values).
+    ends (a spring test: grips that hold the wire ends).  `rotation` (optional, as
+    `axial_ends` sets it): the total end rotation $\\Theta$ about the axis of the canonical
+    placement, whole turns included, which the frame holds only up to whole turns -- the
+    default guess of a solve turns the rod by as much.  Non-finite values or a frame that is
+    not a rotation raise `ValueError` (concrete values).
     """
 
     position: Float[Array, "3"]
     frame: Float[Array, "3 3"]
+    rotation: Float[Array, ""] | None
 
-    def __init__(self, position: ArrayLike = (0.0, 0.0, 0.0), frame: ArrayLike | None = None):
+    def __init__(self, position: ArrayLike = (0.0, 0.0, 0.0), frame: ArrayLike | None = None, *, rotation: ArrayLike | None = None):
         position = finite_array(position, "position", "Clamped", (3,))
         frame = jnp.eye(3, dtype=position.dtype) if frame is None else finite_array(frame, "frame", "Clamped", (3, 3))
         check_rotation(frame, "Clamped")
         self.position, self.frame = position, frame
+        self.rotation = None if rotation is None else finite_scalar(rotation, "rotation", "Clamped")
 
     def condition(self) -> EndCondition:
-        return end_condition(CLAMPED, position=self.position, frame=self.frame)
+        return end_condition(CLAMPED, position=self.position, frame=self.frame, rotation=self.rotation)
 
 
 class Loaded(AbstractEnd):
@@ -200,23 +212,27 @@ class Loaded(AbstractEnd):
 
 
 class Tweezer(AbstractEnd):
-    """Prescribed end frame and end force, free end position: `Tweezer(frame, force)`.
+    """Prescribed end frame and end force, free end position: `Tweezer(frame, force, *,
+    rotation=None)`.
 
     The magnetic-tweezer set-up: the magnet holds the bead's orientation `frame` `(3, 3)`
     (e.g. the unloaded end frame turned about the axis by the magnet's rotation) and pulls
-    with `force` `(3,)` (lab); the torque is a reaction.
+    with `force` `(3,)` (lab); the torque is a reaction.  `rotation` (optional): the magnet's
+    total rotation $\\Theta$ with its whole turns, as `Clamped`'s.
     """
 
     frame: Float[Array, "3 3"]
     force: Float[Array, "3"]
+    rotation: Float[Array, ""] | None
 
-    def __init__(self, frame: ArrayLike, force: ArrayLike):
+    def __init__(self, frame: ArrayLike, force: ArrayLike, *, rotation: ArrayLike | None = None):
         self.frame = finite_array(frame, "frame", "Tweezer", (3, 3))
         self.force = finite_array(force, "force", "Tweezer", (3,))
         check_rotation(self.frame, "Tweezer")
+        self.rotation = None if rotation is None else finite_scalar(rotation, "rotation", "Tweezer")
 
     def condition(self) -> EndCondition:
-        return end_condition(TWEEZER, frame=self.frame, force=self.force)
+        return end_condition(TWEEZER, frame=self.frame, force=self.force, rotation=self.rotation)
 
 
 @jit(run_once=True)
@@ -256,12 +272,8 @@ def axial_ends(
     (unloaded: $h_0 = L\\hat\\tau/|\\hat u|$, $\\Theta_0 = L|\\hat u|$, so `rotation=Θ0` means
     "not turned"; $F$ along $e_z$, a pull for $\\hat\\tau > 0$).  Scalars, traced allowed.
 
-    The end frame holds $\\Theta$ only up to whole turns, and `solve_boundary_value`'s default
-    guess turns the rod within half a turn of its unloaded end.  A rod held whole turns past
-    it needs a guess with those turns: the lab wrench $(F e_z, M e_z)$ of
-    `bulk_helix(rod, length, force=F, rotation=Θ)` as `guess=(start.frame.T @ n, start.frame.T
-    @ m)`, or a curve (`rotation_response`, whose first point starts from that helix and whose
-    continuation counts the turns).
+    The end frame holds $\\Theta$ only up to whole turns; the end carries $\\Theta$ itself too
+    (`rotation`), so that the default guess of a solve turns the rod by as many turns.
     """
     try:
         name, given = axial_controls(force=force, moment=moment, extension=extension, rotation=rotation)
@@ -275,8 +287,8 @@ def axial_ends(
     if kind == LOADED:
         return start, Loaded(end.force, end.moment, point=end.point)
     if kind == TWEEZER:
-        return start, Tweezer(end.frame, end.force)
-    return start, Clamped(end.position, end.frame)
+        return start, Tweezer(end.frame, end.force, rotation=end.rotation)
+    return start, Clamped(end.position, end.frame, rotation=end.rotation)
 
 
 def axial_end_condition(rod, length, kind, values) -> EndCondition:
@@ -300,6 +312,7 @@ def axial_end_condition(rod, length, kind, values) -> EndCondition:
         moment=moment * e3,
         point=jnp.zeros(3, dtype),
         about_end=jnp.asarray(False),
+        rotation=jnp.where(loaded, jnp.nan, rotation),
     )
 
 

@@ -442,10 +442,10 @@ def free_nodes(rod, length, start, k, twist=0.0, stretch=0.0):
 
 def _axial_guess(rod, length, start, end: EndCondition, guess_kind: str, bulk=None):
     """(N, M0, twist, stretch): initial wrench and axial deformation of the nodes, from the
-    uniform helix with the end's axial extension (or force) and rotation -- the end frame's
-    twist, within half a turn of the unloaded end's -- or `bulk`: that helix already solved at
-    the end's controls (e.g. a response curve's own prediction, whose rotation counts whole
-    turns too, and so do the nodes then)."""
+    uniform helix with the end's axial extension (or force) and rotation -- the end's
+    `rotation` where it is known (whole turns included), else its frame's twist, within half a
+    turn of the unloaded end's -- or `bulk`: that helix already solved at the end's controls
+    (e.g. a response curve's own prediction)."""
     R_g, x_g = _placement(rod, start)
     axis = R_g[:, 2]
     h0, theta0 = unloaded_observables(rod, length)
@@ -456,7 +456,8 @@ def _axial_guess(rod, length, start, end: EndCondition, guess_kind: str, bulk=No
     # unloaded end is the lever arm).
     point = jnp.where(end.about_end, x_free, end.point)
     loaded_m0 = end.moment - jnp.cross(start.position - point, end.force)
-    twist = jnp.where(loaded, 0.0, twist_angle(R_g.T @ end.frame @ frame_free.T @ R_g))
+    wrapped = twist_angle(R_g.T @ end.frame @ frame_free.T @ R_g)
+    twist = jnp.where(loaded, 0.0, jnp.where(jnp.isfinite(end.rotation), end.rotation - theta0, wrapped))
     stretch_clamped = (end.position - start.position) @ axis - h0
     # A loaded end needs no bulk solve; the clamped controls stand in for its index.
     index = jnp.asarray(CONTROL_INDEX)[jnp.where(loaded, 0, end.kind)]
@@ -464,8 +465,6 @@ def _axial_guess(rod, length, start, end: EndCondition, guess_kind: str, bulk=No
     if guess_kind == "helix":
         if bulk is None:
             bulk = bulk_helix_at(rod, length, index, values, max_steps=24, light=True)
-        else:
-            twist = jnp.where(loaded | ~bulk.ok, twist, bulk.rotation - theta0)
         force = jnp.where(bulk.ok, bulk.force, 0.0)
         moment = jnp.where(bulk.ok, bulk.moment, 0.0)
         stretch_tweezer = jnp.where(bulk.ok, bulk.extension - h0, 0.0)

@@ -150,7 +150,7 @@ def test_unloaded_axial_ends_solve_to_the_unloaded_helix():
         np.testing.assert_allclose(sol.x, hr.helix_centreline(1.0, 0.3, sol.s), atol=1e-9)
 
 
-def test_axial_ends_carry_the_whole_turns_to_the_default_guess():
+def test_axial_ends_carry_the_whole_turns_to_the_default_guess(compilations):
     """The end frame holds the rotation only up to whole turns; `axial_ends` also gives the
     end its total rotation, and the default guess turns the rod by as much: a spring held
     one turn past its unloaded end under a pull is the twisted spring the bulk predicts
@@ -168,6 +168,12 @@ def test_axial_ends_carry_the_whole_turns_to_the_default_guess():
     assert abs(axial_moment(frame_only)) < 0.05 * float(bulk.moment)  # untwisted: the clamps alone
     with pytest.raises(ValueError, match="rotation must be finite"):
         hr.Tweezer(end.frame, end.force, rotation=jnp.nan)
+    # A start's rotation (an end's hint) plays no part: the same solve, no new program.
+    as_start = hr.Clamped(start.position, start.frame, rotation=1.0)
+    compilations.clear()
+    again = hr.solve_boundary_value(SPRING, length, start=as_start, end=end)
+    np.testing.assert_array_equal(again.force, turned.force)
+    assert compilations == []
 
 
 def test_a_first_call_compiles_its_programs_side_by_side_once(compilations, monkeypatch):

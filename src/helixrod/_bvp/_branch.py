@@ -46,7 +46,7 @@ from .._misc import check_integer, finite_scalar, float_dtype
 from .._rod import check_one_rod
 from .._status import RESULTS
 from ._bulk import residual_scales
-from ._ends import AbstractEnd, Clamped, unloaded_clamp
+from ._ends import AbstractEnd, Clamped, as_start, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
 from ._shooting import ShootingArgs, linearised_equations, residual_and_flows
 from ._solve import as_warm_start, ode_tolerances, resolved_test, solve_boundary_value, stability_of_nodes
@@ -327,6 +327,9 @@ def follow_branch(
     options = with_settings(options, segments=segments, stability_pieces=stability_pieces)
     if start is None:
         start = unloaded_clamp(rod)
+    if not isinstance(start, Clamped):
+        raise ValueError(f"{owner}: start must be Clamped, got {type(start).__name__}")
+    start = as_start(start)
     probe = end(jnp.asarray(first, float_dtype()))
     if not isinstance(probe, AbstractEnd):
         raise ValueError(f"{owner}: end({first}) must return Clamped, Loaded or Tweezer, got {type(probe).__name__}")

@@ -190,6 +190,12 @@ class Clamped(AbstractEnd):
         return end_condition(CLAMPED, position=self.position, frame=self.frame, rotation=self.rotation)
 
 
+def as_start(start: Clamped) -> Clamped:
+    """A `Clamped` as the start of a rod: its `rotation` (an end's hint) dropped, so that
+    every start of one position and frame is the same argument of a compiled program."""
+    return start if start.rotation is None else eqx.tree_at(lambda c: c.rotation, start, None)
+
+
 class Loaded(AbstractEnd):
     """Prescribed end load (dead load): `Loaded(force, moment, point=None)`.
 

@@ -38,7 +38,7 @@ from .._misc import finite_scalar, float_dtype, increasing_within, is_concrete, 
 from .._rod import check_one_rod
 from .._status import RESULTS, promote, raise_if_failed, succeeded
 from ._bulk import residual_scales
-from ._ends import CLAMPED, LOADED, AbstractEnd, Clamped, EndCondition, end_condition, unloaded_clamp
+from ._ends import CLAMPED, LOADED, AbstractEnd, Clamped, EndCondition, as_start, end_condition, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
 from ._stability import PIECE_RESOLUTION, stability, stiffness_range
 from ._shooting import (
@@ -433,6 +433,7 @@ def solve_boundary_value(
         start = unloaded_clamp(rod)
     if not isinstance(start, Clamped):
         raise ValueError(f"{owner}: start must be Clamped, got {type(start).__name__}")
+    start = as_start(start)
     end = type(end).condition(end)  # not `end.condition()`: equinox binds a method as a Module (~20 us)
     for name, cond in (("start", start), ("end", end)):
         if any(jnp.ndim(leaf) > 2 or (jnp.ndim(leaf) == 2 and jnp.shape(leaf) != (3, 3)) for leaf in jax.tree.leaves(cond)):

@@ -16,6 +16,7 @@ from ._ends import (
     EndCondition as EndCondition,
     Loaded as Loaded,
     Tweezer as Tweezer,
+    as_start as as_start,
     axial_ends as axial_ends,
     stack_ends as stack_ends,
 )

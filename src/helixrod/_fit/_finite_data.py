@@ -24,6 +24,7 @@ from .._bvp import (
     BoundaryValueOptions,
     Clamped,
     EndCondition,
+    as_start,
     axial_response,
     solve_boundary_value,
     stack_ends,
@@ -193,7 +194,7 @@ class ShapeData(eqx.Module):
         self.s = jnp.asarray(s, dtype)
         self.points = jnp.asarray(pts, dtype)
         self.sigma = jnp.asarray(sig, dtype)
-        self.start = start
+        self.start = as_start(start)
         self.end = ends
         self.segments = check_integer(segments, "segments", owner)
 

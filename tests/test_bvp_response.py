@@ -150,6 +150,14 @@ def test_rotation_response_agrees_with_force_extension():
     single = hr.solve_boundary_value(SPRING, longer, start=start, end=end, segments=4, guess=guess)
     axial_moment = single.moment0[2] + jnp.cross(single.node_position[0], single.force)[2]
     np.testing.assert_allclose(axial_moment, turned.moment[0], rtol=1e-8)
+    np.testing.assert_allclose(turned.solutions.rotation, held, atol=1e-9)  # the turns each rod holds
+    # From the default guess the solve looks for a stable state with those turns, finds none
+    # (its fallbacks found ones with fewer: the untwisted spring) and reports the twisted
+    # spring, unstable, rather than a stable state of other turns.
+    default = hr.solve_boundary_value(SPRING, longer, start=start, end=end, segments=4)
+    assert bool(default.ok) and int(default.instability_index) > 0
+    assert float(default.rotation) == pytest.approx(float(held[0]), abs=1e-9)
+    np.testing.assert_allclose(default.force, single.force, atol=1e-8)
     # Its stability: the curve's 16 pieces do not resolve that wrench; tested again on more,
     # as the single solve is, the same unstable spring (a plectoneme is nearer).
     assert turned.solutions.stability_pieces == single.stability_pieces > DEFAULT_OPTIONS.stability_pieces
@@ -192,17 +200,39 @@ def test_axial_response_with_both_controls_varying_equals_force_extension(mode, 
     length = 2 * TURN
     theta0 = length * SPRING_NORM
     forces = jnp.array([0.005, 0.01, 0.02, 0.03])
-    rotations = theta0 + jnp.array([0.0, 0.3, -0.3, 0.6])
+    # Half a turn from the unloaded end too, where the end frame's twist was read to 1e-3.
+    # (Each step turns the end by less than half a turn: by more, continuation may turn it
+    # the short way, onto other whole turns -- flagged, as the next test shows.)
+    rotations = theta0 + jnp.array([0.0, 1.5, np.pi, 0.6])
     both = hr.axial_response(SPRING, length, force=forces, rotation=rotations, mode=mode, segments=segments)
     assert both.controls == "force-rotation" and both.swept == "force" and both.held == "rotation"
     assert bool(jnp.all(both.ok)) and bool(jnp.all(both.bulk_ok))
     np.testing.assert_allclose(both.force, forces, atol=1e-12)
     np.testing.assert_allclose(both.rotation, rotations, atol=1e-9)
+    np.testing.assert_allclose(both.solutions.rotation, rotations, atol=1e-9)  # the turns each rod holds
     for i in range(4):
         held = hr.force_extension(SPRING, length, forces, rotation=rotations[i], mode=mode, segments=segments)
         tree_allclose(point(both, i), point(held, i), rtol=0, atol=1e-9)
     # The responses move with both controls: not a trivially constant curve.
     assert float(jnp.ptp(both.moment)) > 1e-3 and float(jnp.ptp(both.extension)) > 1e-2
+
+
+def test_a_curve_point_holding_other_whole_turns_is_flagged():
+    """A curve warm-started from a rod that holds other whole turns than its first point
+    asks for stays on that rod's turns (the end frames cannot tell them apart): each point
+    is flagged `other_whole_turns` with NaN observables, its solution kept, and counts the
+    turns it does hold."""
+    length = 2 * TURN
+    theta0 = length * SPRING_NORM
+    start, end = hr.axial_ends(SPRING, length, force=0.01, rotation=theta0)
+    untwisted = hr.solve_boundary_value(SPRING, length, start=start, end=end, segments=4)
+    assert float(untwisted.rotation) == pytest.approx(theta0, abs=1e-9)
+    offsets = jnp.array([0.0, 0.3, -0.3, 0.6])
+    curve = hr.rotation_response(SPRING, length, theta0 + 2 * np.pi + offsets, force=0.01, segments=4, guess=untwisted)
+    assert not bool(jnp.any(curve.ok)) and bool(jnp.all(jnp.isnan(curve.moment)))
+    assert bool(jnp.all(curve.result == hr.RESULTS.other_whole_turns))
+    assert bool(jnp.all(curve.solutions.instability_index == 0))
+    np.testing.assert_allclose(curve.solutions.rotation, theta0 + offsets, atol=1e-9)
 
 
 @pytest.mark.heavy
@@ -229,7 +259,8 @@ def test_independent_points_start_from_their_bulk_helix():
 @pytest.mark.slow  # compiles the independent-mode curve without bulk (~15 s on 2 busy cores)
 def test_axial_response_rotation_hint_and_no_bulk():
     """Force and moment held (a Loaded end: the rotation responds), independent points.
-    `rotation_hint` picks the whole turns of the reported rotation (nearest the hint);
+    The reported rotation holds the whole turns counted along each rod, whatever the hint;
+    without a count (no stability test) `rotation_hint` picks them (nearest the hint);
     `bulk=False` leaves the bulk fields NaN; neither changes the solutions, which equal the
     continuation curve's (the eager 4-segment program above).  Both options apply to
     mode='independent' only."""
@@ -239,8 +270,11 @@ def test_axial_response_rotation_hint_and_no_bulk():
     assert reference.controls == "force-moment" and bool(jnp.all(reference.ok))
     hints = reference.bulk_rotation
     near = hr.axial_response(SPRING, length, force=forces, moment=0.0, mode="independent", rotation_hint=hints, bulk=False)
+    counted = hr.axial_response(SPRING, length, force=forces, moment=0.0, mode="independent",
+                                rotation_hint=hints + 2 * np.pi, bulk=False)
     turned = hr.axial_response(SPRING, length, force=forces, moment=0.0, mode="independent",
-                               rotation_hint=hints + 2 * np.pi, bulk=False)
+                               rotation_hint=hints + 2 * np.pi, bulk=False, options=hr.BoundaryValueOptions(stability_pieces=0))
+    np.testing.assert_allclose(counted.rotation, reference.rotation, rtol=0, atol=1e-9)
     for curve in (near, turned):
         assert bool(jnp.all(curve.ok)) and not bool(jnp.any(curve.bulk_ok))
         assert bool(jnp.all(jnp.isnan(curve.bulk_extension))) and bool(jnp.all(jnp.isnan(curve.bulk_rotation)))

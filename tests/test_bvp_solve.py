@@ -166,6 +166,16 @@ def test_axial_ends_carry_the_whole_turns_to_the_default_guess(compilations):
     assert bool(turned.stable) and bool(frame_only.stable)
     assert axial_moment(turned) == pytest.approx(float(bulk.moment), rel=1e-3)
     assert abs(axial_moment(frame_only)) < 0.05 * float(bulk.moment)  # untwisted: the clamps alone
+    # Each solution counts the whole turns it holds (the same end frame, a turn apart).
+    assert float(turned.rotation) == pytest.approx(rotation, abs=1e-9)
+    assert float(frame_only.rotation) == pytest.approx(rotation - 2 * np.pi, abs=1e-9)
+    # Warm-started from the untwisted spring, the solve stays there: converged, but not to
+    # the turns the end asks for -- flagged, and with throw=True an error that says so.
+    stayed = hr.solve_boundary_value(SPRING, length, start=start, end=end, guess=frame_only, throw=False)
+    assert int(stayed.result._value) == int(hr.RESULTS.other_whole_turns._value) and not bool(stayed.ok)
+    assert float(stayed.rotation) == pytest.approx(rotation - 2 * np.pi, abs=1e-9)
+    with pytest.raises(hr.SolverError, match=r"other whole turns.*holds 5\.00 turns, the end asks for 6\.00"):
+        hr.solve_boundary_value(SPRING, length, start=start, end=end, guess=frame_only)
     with pytest.raises(ValueError, match="rotation must be finite"):
         hr.Tweezer(end.frame, end.force, rotation=jnp.nan)
     # A start's rotation (an end's hint) plays no part: the same solve, no new program.
@@ -174,6 +184,29 @@ def test_axial_ends_carry_the_whole_turns_to_the_default_guess(compilations):
     again = hr.solve_boundary_value(SPRING, length, start=as_start, end=end)
     np.testing.assert_array_equal(again.force, turned.force)
     assert compilations == []
+
+
+def test_the_end_rotation_is_the_twist_and_fuller_writhe_integrals():
+    """A solution's `rotation` against the integrals it sums (`_rotation.py`): along the
+    rod integrated again from its start wrench (`solve_static`, 4001 points, trapezoids),
+    $\\Theta = \\int u_3\\,ds + \\int (e_z\\times t)\\cdot t'/(1 + t_z)\\,ds$ -- the twist and the
+    connection of Fuller's reference frame -- for a spring held 0, 1 and 1.3 turns past its
+    unloaded end; unloaded, $\\Theta_0 = L|\\hat u|$ (the convention of `axial_ends`)."""
+    length = 5 * TURN
+    theta0 = length * SPRING_NORM
+    s = np.linspace(0.0, length, 4001)
+    for extra in (0.0, 2 * np.pi, 2 * np.pi + 2.0):
+        start, end = hr.axial_ends(SPRING, length, force=0.05, rotation=theta0 + extra)
+        sol = hr.solve_boundary_value(SPRING, length, start=start, end=end)
+        assert bool(sol.stable)
+        path = hr.solve_static(SPRING, sol.n0, sol.m0, length, frame0=start.frame, x0=start.position, saveat=s, outputs=("frame",))
+        frames, twists = np.asarray(path.frame), np.asarray(jax.vmap(SPRING.twist)(path.m))
+        tangents = frames[:, :, 2]
+        turning = np.einsum("sij,sj->si", frames, np.cross(twists, [0.0, 0.0, 1.0]))  # t' = D (u x e3)
+        connection = np.cross([0.0, 0.0, 1.0], tangents)
+        integrals = np.trapezoid(twists[:, 2], s) + np.trapezoid(np.sum(connection * turning, 1) / (1 + tangents[:, 2]), s)
+        assert float(sol.rotation) == pytest.approx(integrals, abs=1e-6)
+        assert float(sol.rotation) == pytest.approx(theta0 + extra, abs=1e-9)
 
 
 def test_a_first_call_compiles_its_programs_side_by_side_once(compilations, monkeypatch):

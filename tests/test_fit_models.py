@@ -60,15 +60,18 @@ def test_helix_residuals_are_the_normalised_errors_of_the_chosen_registers(noisy
 def test_solver_objects(noisy):
     """An optimistix least-squares solver object gives the same fit as the default alias
     (helixrod's Levenberg-Marquardt, which differs from optimistix's only in accepting steps
-    at round-off: the two stop within 1e-9 of each other); a minimiser is accepted for helix
-    data; rtol= with an object is an error."""
+    at round-off): the same cost to round-off, and parameters within 1e-6 of their standard
+    errors -- where the cost is flat to round-off, where the two stop differs by machine
+    (2.7e-9 in K2, 1.6e-9 relative, on one AMD EPYC machine; below 1e-9 on others); a
+    minimiser is accepted for helix data; rtol= with an object is an error."""
     rod, data, fit = noisy
     same = hr.fit_stiffness(data, uhat=rod.uhat, solver=optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12))
     assert same.method == "LevenbergMarquardt" and fit.method == "levenberg-marquardt"
+    np.testing.assert_allclose(float(same.cost), float(fit.cost), rtol=1e-12)
     for name in fit.names:
-        np.testing.assert_allclose(float(same.params[name]), float(fit.params[name]), rtol=1e-9)
-        np.testing.assert_allclose(float(same.stderr[name]), float(fit.stderr[name]), rtol=1e-8)
-    np.testing.assert_allclose(same.residuals, fit.residuals, rtol=1e-8, atol=1e-9)
+        assert abs(float(same.params[name]) - float(fit.params[name])) < 1e-6 * float(fit.stderr[name])
+        np.testing.assert_allclose(float(same.stderr[name]), float(fit.stderr[name]), rtol=1e-6)
+    np.testing.assert_allclose(same.residuals, fit.residuals, rtol=0, atol=1e-6)
     small = hr.HelixData(data.force[:3], data.moment[:3], data.kappa[:3], data.tau[:3], data.force_sigma[:3],
                          data.moment_sigma[:3])
     adam = hr.fit_stiffness(small, uhat=rod.uhat, solver=ADAM, n_starts=1, max_steps=8)

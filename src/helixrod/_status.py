@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import diffrax
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ._misc import is_concrete
@@ -36,6 +37,10 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "The point is outside the model's range of validity (a force too low for the "
         "twist-fluctuation theory, whose correction is no longer small, or no buckling "
         "transition because the plectoneme phase is stiffer than the extended one)."
+    )
+    other_whole_turns = (
+        "The solve converged to an equilibrium that meets the end frame but holds other whole "
+        "turns than the end's total rotation asks for (another state of the same frames)."
     )
     weights_not_settled = (
         "The weights of errors in variables did not settle: each solve with the weights of "
@@ -82,10 +87,21 @@ def _code(result) -> np.ndarray:
     return np.asarray(value)
 
 
+def set_code(result, where, item):
+    """`result` (codes of any shape, traced or not) with `item` where `where` is true
+    (`RESULTS.where` takes one scalar predicate)."""
+    return jax.tree.map(lambda code: jnp.where(where, jnp.asarray(_code(item), code.dtype), code), result)
+
+
+def has_code(result, item) -> np.ndarray:
+    """`result == item` for concrete codes, compared on the host (`succeeded`)."""
+    return np.asarray(_code(result) == _code(item))
+
+
 def succeeded(result) -> np.ndarray:
     """`ok_of` for concrete codes, compared on the host: no device dispatch (~35 us each,
     which added up in the status checks of an eager call)."""
-    return np.asarray(_code(result) == _code(RESULTS.successful))
+    return has_code(result, RESULTS.successful)
 
 
 def raise_if_failed(tree, result, what: str, hint: str = ""):

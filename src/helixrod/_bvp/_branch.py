@@ -234,7 +234,7 @@ def _compile_point_ahead(rod, length, start, end_at, options, k: int) -> bool:
     if record is not None and options.stability_pieces > 0:
         compile_ahead(
             stability_of_nodes, rod, problem.length, record["end"], record["force"], record["moment0"], record["xs"],
-            record["frames"], RESULTS.successful, options,
+            record["frames"], record["end_frame"], RESULTS.successful, options,
         )
     return record is not None
 
@@ -355,7 +355,7 @@ def follow_branch(
         host = jax.device_get({name: record[name] for name in ("z", "tangent", "sign", "steps", "converged")})
         index, margin = np.asarray(-1, np.int32), np.asarray(np.nan, dtype)
         if with_stability and options.stability_pieces > 0 and host["converged"]:
-            inputs = (record["force"], record["moment0"], record["xs"], record["frames"], RESULTS.successful)
+            inputs = (record["force"], record["moment0"], record["xs"], record["frames"], record["end_frame"], RESULTS.successful)
             tested = stability_of_nodes(rod, problem.length, record["end"], *inputs, options)
             # More pieces where these do not resolve the wrench, as `solve_boundary_value` takes.
             tested, _ = resolved_test(rod, problem.length, record["end"], inputs, tested, options, record["end_position"])

@@ -37,10 +37,11 @@ from .._lie import twist_angle, unwrap_near
 from .._misc import check_choice, finite_scalar, float_dtype, is_concrete, no_gradient, replaced
 from .._progress import ProgressArgument, ProgressReport, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import check_one_rod
-from .._status import RESULTS, raise_if_failed, succeeded
+from .._status import RESULTS, raise_if_failed, set_code, succeeded
 from ._bulk import BulkHelix, bulk_helix_at
 from ._ends import AXIAL_CONTROLS, AXIAL_OBSERVABLES, CONTROL_INDEX, LOADED, EndCondition, axial_controls, axial_end_condition, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
+from ._rotation import holds_turns
 from ._shooting import WarmStart, default_warm_start
 from ._solve import (
     BoundaryValueSolution,
@@ -285,10 +286,10 @@ def _point_ends(rod, length, kind, values) -> EndCondition:
     return jax.vmap(lambda v: axial_end_condition(rod, length, kind, v))(values)
 
 
-def _stability_of_points(rod, length, kind, values, N, M0, xs, frames, result, options: BoundaryValueOptions):
-    """The stability test of each point's solution (its `N`, `M0`, nodes and `result`) at
-    its controls `values` `(n, 4)`."""
-    return stability_at_points(rod, length, _point_ends(rod, length, kind, values), N, M0, xs, frames, result, options)
+def _stability_of_points(rod, length, kind, values, N, M0, xs, frames, end_frames, result, options: BoundaryValueOptions):
+    """The stability test of each point's solution (its `N`, `M0`, nodes, end frame and
+    `result`) at its controls `values` `(n, 4)`."""
+    return stability_at_points(rod, length, _point_ends(rod, length, kind, values), N, M0, xs, frames, end_frames, result, options)
 
 
 # A program of its own: a curve's solves (whose continuation the test does not steer) and
@@ -309,15 +310,39 @@ def _resolved(rod, length, kind, values, sols: BoundaryValueSolution, options: B
         return sols
     # On the host: each point's arrays sliced by JAX would compile a program per field.
     points, ends = jax.device_get((sols, _ends_of_points(rod, length, kind, values)))
-    index, margin, push = (np.array(a) for a in (points.instability_index, points.stability_margin, points.unstable_direction))
+    fields = ("instability_index", "stability_margin", "unstable_direction", "rotation")
+    tests = {name: np.array(getattr(points, name)) for name in fields}
     pieces = sols.stability_pieces
     for i in unresolved:
         take = lambda tree: jax.tree.map(lambda a: a[i], tree)  # noqa: E731,B023
         tested = jax.device_get(resolved_stability(rod, length, take(ends), take(points), options))
-        index[i], margin[i], push[i] = tested.instability_index, tested.stability_margin, tested.unstable_direction
+        for name in fields:
+            tests[name][i] = getattr(tested, name)
         pieces = max(pieces, tested.stability_pieces)
-    return replaced(sols, instability_index=jnp.asarray(index), stability_margin=jnp.asarray(margin),
-                    unstable_direction=jnp.asarray(push), stability_pieces=pieces)
+    return replaced(sols, **{name: jnp.asarray(value) for name, value in tests.items()}, stability_pieces=pieces)
+
+
+def _turns_counted(kind, values, obs: tuple, sols: BoundaryValueSolution, concrete: bool):
+    """The curve's observables `obs` and solutions with each point's whole turns as counted
+    along its rod (`sols.rotation`, by the stability test): a responding rotation (a
+    `Loaded` end) takes the whole turns nearest the count, where counted, instead of those
+    nearest its hint (the count is $\\psi(L) - \\psi(0)$, `_rotation.py`, which for a tilted
+    end differs from the curve's $\\Theta$ by the tilt's second order: the turns only); a
+    point whose rotation is prescribed but whose solution holds other whole turns is
+    flagged `other_whole_turns`, its observables NaN.  On the host for a concrete curve (no
+    one-operation programs to compile)."""
+    xp = np if concrete else jnp
+    rotation, observed = xp.asarray(sols.rotation), xp.asarray(obs[3])
+    counted = xp.isfinite(rotation)
+    turned = xp.where(counted, observed + 2.0 * np.pi * xp.round((rotation - observed) / (2.0 * np.pi)), observed)
+    if concrete and int(kind) == LOADED:
+        return (*obs[:3], jnp.asarray(turned)), sols
+    other = counted & ~holds_turns(rotation, xp.asarray(values[:, 3])) & (xp.asarray(kind) != LOADED)
+    if concrete and not other.any():
+        return obs, sols
+    obs = (*obs[:3], jnp.where(xp.asarray(kind) == LOADED, turned, obs[3]))
+    obs = tuple(jnp.where(other, jnp.nan, column) for column in obs)
+    return obs, replaced(sols, result=set_code(sols.result, other, RESULTS.other_whole_turns))
 
 
 def _tested(rod, length, kind, values, sols: BoundaryValueSolution, options: BoundaryValueOptions) -> BoundaryValueSolution:
@@ -433,10 +458,13 @@ def axial_response(
     `axial_ends`), each point solved by `solve_boundary_value` in the canonical placement.
 
     `mode`: `"continuation"` (default; in order, each solve warm-started from the previous)
-    or `"independent"` (vmapped solves from the bulk guess).  `rotation_hint` `(n,)`
-    (independent mode): count the whole turns of a responding rotation nearest these
-    values (e.g. measured ones) instead of the bulk prediction's; `bulk=False` skips the
-    bulk prediction (its fields NaN).  `guess`: where to start -- a
+    or `"independent"` (vmapped solves from the bulk guess).  A responding rotation
+    (force and moment held) holds the whole turns counted along each point's rod
+    (`BoundaryValueSolution.rotation`); where they are not counted (no stability test,
+    `stability_pieces=0`, or a tangent along $-e_z$), those nearest the previous point's
+    (continuation) or the bulk prediction's (independent mode), or with `rotation_hint`
+    `(n,)` (independent mode) nearest these values; `bulk=False` skips the bulk prediction
+    (its fields NaN).  `guess`: where to start -- a
     `BoundaryValueSolution` (e.g. a buckled state found by `solve_boundary_value` or
     `follow_branch`) or a pair `(n0, m0)` of start wrenches (director frame): the first
     point's start in continuation mode (the default guess where that fails), every point's
@@ -509,6 +537,7 @@ def _response(
             sols = _tested(rod, length, kind, values, sols, options)
     if concrete:
         sols = _resolved(rod, length, kind, values, sols, options)
+    obs, sols = _turns_counted(kind, values, obs, sols, concrete)
     curve = ResponseCurve(
         controls=name,
         swept=swept,

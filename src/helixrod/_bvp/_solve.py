@@ -33,13 +33,15 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._compile import compile_ahead, jit, once_per_signature
+from .._geometry import unloaded_observables
 from .._kirchhoff import wrench_growth_rate
 from .._misc import finite_scalar, float_dtype, increasing_within, is_concrete, no_gradient, replaced
 from .._rod import check_one_rod
-from .._status import RESULTS, promote, raise_if_failed, succeeded
+from .._status import RESULTS, SolverError, has_code, promote, raise_if_failed, succeeded
 from ._bulk import residual_scales
 from ._ends import CLAMPED, LOADED, AbstractEnd, Clamped, EndCondition, as_start, end_condition, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
+from ._rotation import exact_rotation, holds_turns
 from ._stability import PIECE_RESOLUTION, stability, stiffness_range
 from ._shooting import (
     ShootingArgs,
@@ -68,8 +70,18 @@ class BoundaryValueSolution(eqx.Module):
     `(k, 3, 3)` the starts of the `segments` pieces (a warm start for another solve).
     Status: `residual` the largest scaled residual of the shooting equations, `tolerance`
     the largest it may be, `result` a `RESULTS` code (the root finder's, `invalid_input`,
-    or `residual_above_tolerance`), `ok` (`result` is successful), `num_steps` root-finder
+    `residual_above_tolerance`, or `other_whole_turns`), `ok` (`result` is successful), `num_steps` root-finder
     iterations (all stages), `valid_input`.
+
+    `rotation`: the total rotation $\\Theta$ of the end about $e_z$, whole turns included --
+    the angle of $d_1$ about the tangent from Fuller's reference frame, followed along the
+    rod by the stability test (`_rotation.py`; $\\Theta = \\int u_3\\,ds + \\int (e_z\\times
+    t)\\cdot t'/(1+t_z)\\,ds$), its value from the end frame: for the ends of `axial_ends`
+    (turned about $e_z$) the rotation they are given, $\\Theta_0 = L|\\hat u|$ unloaded.  Two
+    solutions that meet the same end frame differ in it by whole turns.  NaN where it is not
+    counted: no stability test (`stability_pieces=0`), a failed solve, a tangent within
+    ~2.6 degrees of $-e_z$.  Where the end knows its rotation (`rotation=`), an eager solve
+    that converges to other whole turns is flagged (`result` `other_whole_turns`).
     """
 
     s: Float[Array, " p"]
@@ -95,6 +107,7 @@ class BoundaryValueSolution(eqx.Module):
     instability_index: Int[Array, ""]
     stability_margin: Float[Array, ""]
     unstable_direction: Float[Array, "6"]
+    rotation: Float[Array, ""]
     stability_pieces: int = eqx.field(static=True)
     continuation: int = eqx.field(static=True)
 
@@ -151,41 +164,47 @@ def as_warm_start(rod, length, start: Clamped, end: EndCondition, guess, options
     return no_gradient(warm_start_of(rod, length, start, end, guess, options, guess_kind, ode_tolerances(options, float_dtype())))
 
 
-def _stability_where_solved(rod, length, end: EndCondition, N, M0, xs, frames, result, options: BoundaryValueOptions):
+def _stability_where_solved(rod, length, end: EndCondition, N, M0, xs, frames, end_frame, result, options: BoundaryValueOptions):
     """`stability` on `options.stability_pieces` pieces, undefined (index -1, NaN margin,
-    no push) where the solve did not succeed."""
-    index, margin, push = stability(rod, length, end, N, M0, xs, frames, options)
+    no push, NaN rotation) where the solve did not succeed; the rotation it counts made
+    exact with the solve's start and `end_frame` (`exact_rotation`)."""
+    index, margin, push, counted = stability(rod, length, end, N, M0, xs, frames, options)
     defined = result == RESULTS.successful
-    return jnp.where(defined, index, -1), jnp.where(defined, margin, jnp.nan), jnp.where(defined, push, 0.0)
+    rotation = jnp.where(defined, exact_rotation(frames[0], end_frame, counted), jnp.nan)
+    return jnp.where(defined, index, -1), jnp.where(defined, margin, jnp.nan), jnp.where(defined, push, 0.0), rotation
 
 
 def stability_inputs(sol) -> tuple:
     """What the stability test reads of a solution (or of a batch of them, or of their
-    `jax.ShapeDtypeStruct`s): `(N, M0, node positions, node frames, result)`."""
-    return sol.force, sol.moment0, sol.node_position, sol.node_frame, sol.result
+    `jax.ShapeDtypeStruct`s): `(N, M0, node positions, node frames, end frame, result)`."""
+    return sol.force, sol.moment0, sol.node_position, sol.node_frame, sol.end_frame, sol.result
 
 
 def with_stability(sol, tested, pieces: int):
-    """`sol` with the stability test's `(index, margin, push)` on `pieces` pieces (`replaced`)."""
-    index, margin, push = tested
-    return replaced(sol, instability_index=index, stability_margin=margin, unstable_direction=push, stability_pieces=pieces)
+    """`sol` with the stability test's `(index, margin, push, rotation)` on `pieces` pieces
+    (`replaced`)."""
+    index, margin, push, rotation = tested
+    return replaced(
+        sol, instability_index=index, stability_margin=margin, unstable_direction=push, rotation=rotation, stability_pieces=pieces
+    )
 
 
-def stability_at_points(rod, length, ends: EndCondition, N, M0, xs, frames, result, options: BoundaryValueOptions):
+def stability_at_points(rod, length, ends: EndCondition, N, M0, xs, frames, end_frames, result, options: BoundaryValueOptions):
     """The stability test of many solutions of one rod (`restability`'s, one after another
-    along the leading axis of `ends` and the solutions' arrays): `(index, margin, push)`
-    per point.  A loop (`lax.map`), not `vmap`: batched, the test ran no faster (a 50-point
+    along the leading axis of `ends` and the solutions' arrays): `(index, margin, push,
+    rotation)` per point.  A loop (`lax.map`), not `vmap`: batched, the test ran no faster (a 50-point
     curve's 37-40 ms either way) and its program traced in 0.75 s instead of 0.30 s and
     compiled in 2.5 s of CPU instead of 1.8 s; the same results to 1e-9."""
     def one(point):
         return _stability_where_solved(rod, length, *point, options)
 
-    return jax.lax.map(one, (ends, N, M0, xs, frames, result))
+    return jax.lax.map(one, (ends, N, M0, xs, frames, end_frames, result))
 
 
-#: `stability_of_nodes(rod, length, end, N, M0, xs, frames, result, options)`: `(index,
-#: margin, push)` of the equilibrium with lab start wrench (`N`, `M0`) and shooting nodes
-#: `xs`, `frames` (`stability_inputs`), undefined where `result` is not a success.  A
+#: `stability_of_nodes(rod, length, end, N, M0, xs, frames, end_frame, result, options)`:
+#: `(index, margin, push, rotation)` of the equilibrium with lab start wrench (`N`, `M0`),
+#: shooting nodes `xs`, `frames` and end frame (`stability_inputs`), undefined where
+#: `result` is not a success.  A
 #: program of its own: the solve and the test compile side by side at a first call
 #: (`_compile_side_by_side`), a finer test needs no new solve, nor a compilation of one,
 #: and a caller with the same types and options (`follow_branch`) finds it compiled, or
@@ -282,10 +301,11 @@ def solve(
     if options.continuation > 0:
         frozen = no_gradient(args)
         x_free, frame_free = (a[-1] for a in free_nodes(frozen.rod, frozen.length, frozen.start, 1))
+        unloaded_rotation = unloaded_observables(frozen.rod, frozen.length)[1]
 
         def step(carry, t):
             y, ref_x, ref_frame, steps = carry
-            end_t = frozen.end.homotopy(t, x_free, frame_free)
+            end_t = frozen.end.homotopy(t, x_free, frame_free, unloaded_rotation)
             args_t = eqx.tree_at(lambda a: (a.end, a.ref_x, a.ref_frame), frozen, (end_t, ref_x, ref_frame))
             y, *_, n = root(y, args_t, options)
             y, args_t = rebase(y, args_t, k)
@@ -311,9 +331,10 @@ def solve(
     out = _observe(args, N, M0, saveat, observed, x_end[-1], frame_end[-1])
     tested = test_stability and options.stability_pieces > 0
     if tested:
-        index, margin, push = _stability_where_solved(rod, length, end, N, M0, xs, frames, result, options)
+        index, margin, push, rotation = _stability_where_solved(rod, length, end, N, M0, xs, frames, frame_end[-1], result, options)
     else:
         index, margin, push = jnp.asarray(-1, jnp.int32), jnp.asarray(jnp.nan, dtype), jnp.zeros(6, dtype)
+        rotation = jnp.asarray(jnp.nan, dtype)
     nan = lambda a: jnp.where(valid, a, jnp.nan)  # noqa: E731
     return BoundaryValueSolution(
         s=out[0],
@@ -339,10 +360,16 @@ def solve(
         instability_index=index,
         stability_margin=margin,
         unstable_direction=push,
+        rotation=rotation,
         stability_pieces=options.stability_pieces if tested else 0,
         continuation=options.continuation,
     )
 
+
+_TURNS_HINT = (
+    "; twist it there along a curve (`rotation_response`), warm-start from a solution with those turns, "
+    "or use throw=False to take this one"
+)
 
 _HINT = "; try continuation=, more segments=, a better guess=, or throw=False to inspect `result` and `residual`"
 
@@ -456,6 +483,12 @@ def solve_boundary_value(
         return raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _HINT) if throw else sol
     sol = _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind)
     if throw and not _status(sol)[0]:
+        if has_code(sol.result, RESULTS.other_whole_turns):
+            held = float(sol.rotation)
+            raise SolverError(
+                f"{owner}: {RESULTS[sol.result]} It holds {held / (2 * np.pi):.2f} turns, the end asks for "
+                f"{float(end.rotation) / (2 * np.pi):.2f}{_TURNS_HINT}"
+            )
         raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _hint(sol, rod, length, start, end, guess, guess_kind))
     return sol
 
@@ -601,7 +634,19 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
     along its most unstable direction; when that fails too, or the direct solve did: for an
     intrinsically straight rod between clamps brought closer than its length, the first
     buckled mode (`buckled_guess`), then homotopy continuation from the unloaded rod
-    (`FALLBACK_CONTINUATION`)."""
+    (`FALLBACK_CONTINUATION`).  Where the end knows its total rotation (`rotation`, e.g.
+    from `axial_ends`), a state is accepted only if it holds those whole turns (its
+    `rotation`, as the stability test counts it); a converged solution that does not is
+    returned with result `other_whole_turns`."""
+    asked = np.asarray(jax.device_get(end.rotation))
+
+    def turns_held(trial) -> bool:
+        return not np.isfinite(asked) or bool(holds_turns(np.asarray(jax.device_get(trial.rotation)), asked))
+
+    def flagged(chosen):
+        if _status(chosen)[0] and not turns_held(chosen):
+            return replaced(chosen, result=RESULTS.other_whole_turns)
+        return chosen
 
     def solved(guess, options):
         return resolved_stability(rod, length, end, solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind), options)
@@ -610,7 +655,7 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
 
     def acceptable(trial) -> bool:
         ok, index = _status(trial)
-        return ok and index <= 0
+        return ok and index <= 0 and turns_held(trial)
 
     def settled(trial):
         """`trial`, or where it converged to an unstable state, a solve pushed from it to
@@ -638,7 +683,7 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
         return None
 
     if not default_guess or options.continuation > 0 or acceptable(sol):
-        return sol
+        return flagged(sol)
     found = settled(sol)
     if found is not None:
         return found
@@ -652,8 +697,10 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
     for steps in FALLBACK_CONTINUATION:
         homotopy = dataclasses.replace(options, continuation=steps)
         trial = solved(None, homotopy)
-        if acceptable(trial) or (_status(trial)[0] and not _status(sol)[0]):
+        # A converged state before a failed one; the asked whole turns before other ones.
+        better = _status(trial)[0] and (not _status(sol)[0] or (turns_held(trial) and not turns_held(sol)))
+        if acceptable(trial) or better:
             sol = trial
         if acceptable(sol):
             break
-    return sol
+    return flagged(sol)

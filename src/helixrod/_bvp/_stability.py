@@ -58,6 +58,7 @@ from jaxtyping import Array, Float
 from .._lie import hat
 from .._misc import inverse_small, lowest_eigenpair, no_gradient, solve_small, symmetric_eigenvalue_min
 from ._ends import LOADED, TWEEZER, EndCondition
+from ._rotation import counted_rotation
 from ._options import BoundaryValueOptions
 from ._shooting import per_piece
 from ._variations import PieceVariations, piece_variations, variation_steps
@@ -157,13 +158,16 @@ def second_variation(rod, length, end: EndCondition, N, end_position, transfers)
 
 
 def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: BoundaryValueOptions):
-    """(instability_index, stability_margin, unstable_direction) of the equilibrium with lab force `N`, lab
-    moment `M0` at the start and shooting nodes `xs` `(k, 3)`, `frames` `(k, 3, 3)`, on
-    `options.stability_pieces` pieces (rounded up to a multiple of k).  Index -1 and NaN
-    margin where the stability is not defined (a `Loaded` end with an applied moment), the
-    pieces do not resolve the wrench, or the integration failed.  `unstable_direction`
-    `(6,)`: the change of the lab start wrench (N, M0) that moves the rod along its most
-    unstable direction (zero unless unstable).  No derivatives."""
+    """(instability_index, stability_margin, unstable_direction, rotation) of the
+    equilibrium with lab force `N`, lab moment `M0` at the start and shooting nodes `xs`
+    `(k, 3)`, `frames` `(k, 3, 3)`, on `options.stability_pieces` pieces (rounded up to a
+    multiple of k).  Index -1 and NaN margin where the stability is not defined (a `Loaded`
+    end with an applied moment), the pieces do not resolve the wrench, or the integration
+    failed.  `unstable_direction` `(6,)`: the change of the lab start wrench (N, M0) that
+    moves the rod along its most unstable direction (zero unless unstable).  `rotation`:
+    the end's total rotation about $e_z$ (`_rotation.py`) as counted on the pieces' way, to
+    their integration's accuracy (NaN where not counted; `exact_rotation` makes it exact).
+    No derivatives."""
     rod, length, end, N, M0, xs, frames = no_gradient((rod, length, end, N, M0, xs, frames))
     k = xs.shape[0]
     q = -(-options.stability_pieces // k)
@@ -176,7 +180,8 @@ def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: Bounda
         x, frame = node
         moment = M0 - jnp.cross(x - x0, N)
         local = jnp.concatenate([frame.T @ N, frame.T @ moment])
-        piece = piece_variations(rod, local[:3], local[3:], h, variation_steps(rod, local[:3], local[3:], h, options.max_ode_steps))
+        steps = variation_steps(rod, local[:3], local[3:], h, options.max_ode_steps)
+        piece = piece_variations(rod, local[:3], local[3:], h, steps, frame)
         end_node = (x + frame @ piece.position, frame @ piece.frame)
         return end_node, (frame, moment, piece, jnp.linalg.norm(local[3:]), end_node[0])
 
@@ -188,7 +193,7 @@ def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: Bounda
     starts, moments, pieces = flat(starts), flat(moments), jax.tree.map(flat, pieces)
     transfers = jax.vmap(lambda frame, moment, piece: piece_transfer(frame, N, moment, piece, compliance))(starts, moments, pieces)
     largest_moment = jnp.maximum(jnp.max(start_moments), jnp.max(jnp.linalg.norm(pieces.moment, axis=-1)))
-    return assess(rod, length, end, N, transfers, ends[-1, -1], largest_moment)
+    return (*assess(rod, length, end, N, transfers, ends[-1, -1], largest_moment), counted_rotation(pieces.rotation))
 
 
 def assess(rod, length, end: EndCondition, N, transfers, end_position, largest_moment):

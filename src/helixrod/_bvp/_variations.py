@@ -21,6 +21,7 @@ from jaxtyping import Array, Float, Int
 from .._kirchhoff import linearised_rate
 from .._lie import hat
 from .._rod import Rod
+from ._rotation import RotationCount, advance, start_count
 
 #: Steps per unit of (linearised rate + |u|) x length.  Measured on Greenhill's shaft (the
 #: stability test, 16 pieces), the relative error of its critical twist at 24 / 20 / 12 / 8
@@ -53,13 +54,16 @@ class PieceVariations(eqx.Module):
     """A piece integrated from the identity pose at the origin (`piece_variations`): its end
     `position` `(3,)`, `frame` `(3, 3)` and lab `moment` `(3,)` (about the end), and the
     variations of its end position `d_position` and spatial rotation `d_rotation` `(3, 6)`
-    along the six local start wrenches $(\\delta n, \\delta m)$."""
+    along the six local start wrenches $(\\delta n, \\delta m)$; `rotation`: the count of
+    its end's rotation (`_rotation.RotationCount`) where its lab start frame was given,
+    else None."""
 
     position: Float[Array, "3"]
     frame: Float[Array, "3 3"]
     moment: Float[Array, "3"]
     d_position: Float[Array, "3 6"]
     d_rotation: Float[Array, "3 6"]
+    rotation: RotationCount | None = None
 
 
 def _twist_and_variations(rod, dtype):
@@ -79,7 +83,7 @@ def _twist_and_variations(rod, dtype):
     return forward
 
 
-def piece_variations(rod, n0, m0, length, steps) -> PieceVariations:
+def piece_variations(rod, n0, m0, length, steps, frame=None) -> PieceVariations:
     """A piece of length `length` with local start wrench (`n0`, `m0`) and the variations
     of its end along the six start wrenches, by `steps` equal classical Runge--Kutta steps
     of the centreline, frame and Jacobi fields together.
@@ -94,7 +98,8 @@ def piece_variations(rod, n0, m0, length, steps) -> PieceVariations:
     (from $D' = D\\hat u$, $x' = De_3$ and $u = u(D^TM)$): six fields of six components
     beside the pose, in a loop that XLA compiles into one small kernel.  The frame is not
     kept on $SO(3)$ by the steps: its drift, of the order of the steps' error, is projected
-    out at the end."""
+    out at the end.  With the piece's lab start `frame`, the rotation of its frame about
+    $e_z$ is counted step by step on the way (`_rotation.advance`)."""
     dtype = jnp.result_type(n0, m0, float)
     N, M0 = n0[:, None], m0[:, None]
     eye = jnp.eye(3, dtype=dtype)
@@ -121,10 +126,19 @@ def piece_variations(rod, n0, m0, length, steps) -> PieceVariations:
         return jax.tree.map(lambda yi, a, b, c, d: yi + (h / 6) * (a + 2 * b + 2 * c + d), y, k1, k2, k3, k4)
 
     start = (jnp.zeros((3, 1), dtype), eye, jnp.zeros((3, 6), dtype), jnp.zeros((3, 6), dtype))
-    x, D, dx, dtheta = jax.lax.fori_loop(0, steps, step, start)
+    if frame is None:
+        x, D, dx, dtheta = jax.lax.fori_loop(0, steps, step, start)
+        count = None
+    else:
+
+        def counted_step(i, carry):
+            y = step(i, carry[0])
+            return y, advance(carry[1], frame @ y[1])
+
+        (x, D, dx, dtheta), count = jax.lax.fori_loop(0, steps, counted_step, (start, start_count(frame)))
     D = D @ (1.5 * eye - 0.5 * D.T @ D)  # one Newton--Schulz step towards the nearest rotation
     x = x[:, 0]
-    return PieceVariations(x, D, m0 - jnp.cross(x, n0), dx, dtheta)
+    return PieceVariations(x, D, m0 - jnp.cross(x, n0), dx, dtheta, count)
 
 
 def flow_variations(rod, wrench, length, max_steps: int, per_radian: float = STEPS_PER_RADIAN) -> Float[Array, "6 18"]:

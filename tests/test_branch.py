@@ -93,6 +93,7 @@ def test_switch_onto_the_post_buckled_elastica(euler):
     i = P.size // 2
     again = helixrod.solve_boundary_value(rod, L, end=compressive(jnp.asarray(P[i])), guess=(buckled.n0[i], buckled.m0[i]))
     np.testing.assert_allclose(np.asarray(again.end_position), tip[i], atol=1e-9)
+    np.testing.assert_allclose(float(again.rotation), float(buckled.rotation[i]), atol=1e-9)  # the same turns
 
 
 @pytest.mark.heavy

@@ -92,8 +92,10 @@ class Branch(eqx.Module):
     `moment0` (at $s = 0$), the start wrench `n0`, `m0` in the director frame (a `guess=` for
     `solve_boundary_value` at that parameter), `end_position`, `end_frame`, the shooting
     nodes `node_position` `(n, k, 3)`, `node_frame`, and the stability:
-    `instability_index` (-1 where not defined), `stability_margin`; `special` the folds and
-    branch points found, in order; `message` why the branch ended."""
+    `instability_index` (-1 where not defined), `stability_margin`, and the end's total
+    `rotation` about $e_z$ with the whole turns the rod holds (as
+    `BoundaryValueSolution.rotation`; NaN where not tested); `special` the folds and branch
+    points found, in order; `message` why the branch ended."""
 
     parameter: Float[Array, " n"]
     arclength: Float[Array, " n"]
@@ -107,6 +109,7 @@ class Branch(eqx.Module):
     node_frame: Float[Array, "n k 3 3"]
     instability_index: Int[Array, " n"]
     stability_margin: Float[Array, " n"]
+    rotation: Float[Array, " n"]
     special: tuple[SpecialPoint, ...]
     message: str = eqx.field(static=True)
 
@@ -353,14 +356,14 @@ def follow_branch(
         record = _point(z_pred, row, np.asarray(target, dtype), previous, problem, end_at, options)
         # What the loop reads, on the host; the rest stays put until a point is kept.
         host = jax.device_get({name: record[name] for name in ("z", "tangent", "sign", "steps", "converged")})
-        index, margin = np.asarray(-1, np.int32), np.asarray(np.nan, dtype)
+        index, margin, rotation = np.asarray(-1, np.int32), np.asarray(np.nan, dtype), np.asarray(np.nan, dtype)
         if with_stability and options.stability_pieces > 0 and host["converged"]:
             inputs = (record["force"], record["moment0"], record["xs"], record["frames"], record["end_frame"], RESULTS.successful)
             tested = stability_of_nodes(rod, problem.length, record["end"], *inputs, options)
             # More pieces where these do not resolve the wrench, as `solve_boundary_value` takes.
             tested, _ = resolved_test(rod, problem.length, record["end"], inputs, tested, options, record["end_position"])
-            index, margin = jax.device_get(tested[:2])
-        return dict(record, **host, index=index, margin=margin)
+            index, margin, rotation = jax.device_get((tested[0], tested[1], tested[3]))
+        return dict(record, **host, index=index, margin=margin, rotation=rotation)
 
     def rebased(record, problem):
         if k == 1:
@@ -514,5 +517,6 @@ def follow_branch(
         node_frame=stack("frames"),
         instability_index=stack("index"),
         stability_margin=stack("margin"),
+        rotation=stack("rotation"),
     )
     return Branch(**{name: jnp.asarray(value) for name, value in fields.items()}, special=tuple(special), message=message)

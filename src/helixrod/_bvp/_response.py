@@ -13,8 +13,9 @@ axis is an initial-value problem and needs no continuation).
 Observables (`AXIAL_OBSERVABLES`): axial force $F = N\\cdot e_z$, axial moment $M$ (about the
 axis), extension $h = (x(L) - x(0))\\cdot e_z$, end rotation $\\Theta$: the unloaded
 $\\Theta_0 = L|\\hat u|$ plus the twist about $e_z$ of $D(L)D_0(L)^T$ (the end frame relative
-to the unloaded end frame), its whole turns counted by continuity along the curve (from the
-bulk prediction at the first point).  The bulk (uniform-helix) prediction at the same
+to the unloaded end frame), with the whole turns each point's rod holds, counted along it
+by its stability test (`BoundaryValueSolution.rotation`; where not counted, by continuity
+along the curve from the bulk prediction at the first point).  The bulk (uniform-helix) prediction at the same
 controls follows its own branch by continuation from the unloaded helix; the difference is
 the end effect of the clamp, which does not vanish at a clamp but whose share of the
 totals falls like $1/L$ (tested in `tests/test_bvp.py`).
@@ -63,8 +64,10 @@ class ResponseCurve(eqx.Module):
     `controls`: the prescribed pair (a key of `AXIAL_CONTROLS`, e.g. `"force-rotation"`),
     `swept` the one that varies along the curve, `held` the other; `length` $L$.  Per point
     (shape `(n,)`): `force`, `moment`, `extension`, `rotation` of the finite rod (controls
-    as prescribed, responses as solved; NaN where a solve failed; module docstring for the
-    conventions) and `bulk_force`, `bulk_moment`, `bulk_extension`, `bulk_rotation` of the
+    as prescribed, responses as solved; NaN where a solve failed, or where the rod holds
+    other whole turns than a prescribed rotation asks for, `other_whole_turns`: a
+    continuation step that turns the end by more than half a turn may land there; module
+    docstring for the conventions) and `bulk_force`, `bulk_moment`, `bulk_extension`, `bulk_rotation` of the
     uniform helix with the same two controls (extension and rotation totals over $L$);
     `result` (a `RESULTS` code per point) and `ok`, `bulk_ok`, `residual`, `num_steps`;
     `solutions` the `BoundaryValueSolution` of every point (batched, end state only).

@@ -186,6 +186,25 @@ def test_axial_ends_carry_the_whole_turns_to_the_default_guess(compilations):
     assert compilations == []
 
 
+@pytest.mark.heavy
+def test_other_whole_turns_are_flagged_under_jit_and_vmap():
+    """Inside a compiled program the solve flags a state with other whole turns than its
+    end asks for itself (an eager call does so after its fallbacks): a vmapped batch of
+    two guesses, the untwisted and the twisted spring at the end frame of the twisted one,
+    flags the first only."""
+    length = 5 * TURN
+    rotation = length * SPRING_NORM + 2 * np.pi
+    start, end = hr.axial_ends(SPRING, length, force=0.05, rotation=rotation)
+    untwisted = hr.solve_boundary_value(SPRING, length, start=start, end=hr.Tweezer(end.frame, end.force))
+    twisted = hr.solve_boundary_value(SPRING, length, start=start, end=end)
+    n0, m0 = (jnp.stack([getattr(untwisted, name), getattr(twisted, name)]) for name in ("n0", "m0"))
+    solve_from = jax.jit(jax.vmap(lambda n, m: hr.solve_boundary_value(SPRING, length, start=start, end=end, guess=(n, m), throw=False)))
+    both = solve_from(n0, m0)
+    assert int(both.result._value[0]) == int(hr.RESULTS.other_whole_turns._value) and bool(both.ok[1])
+    np.testing.assert_allclose(both.rotation, [rotation - 2 * np.pi, rotation], atol=1e-9)
+    np.testing.assert_allclose(both.force[1], twisted.force, atol=1e-9)
+
+
 def test_the_end_rotation_is_the_twist_and_fuller_writhe_integrals():
     """A solution's `rotation` against the integrals it sums (`_rotation.py`): along the
     rod integrated again from its start wrench (`solve_static`, 4001 points, trapezoids),

@@ -80,8 +80,9 @@ class BoundaryValueSolution(eqx.Module):
     (turned about $e_z$) the rotation they are given, $\\Theta_0 = L|\\hat u|$ unloaded.  Two
     solutions that meet the same end frame differ in it by whole turns.  NaN where it is not
     counted: no stability test (`stability_pieces=0`), a failed solve, a tangent within
-    ~2.6 degrees of $-e_z$.  Where the end knows its rotation (`rotation=`), an eager solve
-    that converges to other whole turns is flagged (`result` `other_whole_turns`).
+    ~2.6 degrees of $-e_z$.  Where the end knows its rotation (`rotation=`), a solve that
+    converges to other whole turns is flagged (`result` `other_whole_turns`; also under
+    `jax.jit` and `vmap`).
     """
 
     s: Float[Array, " p"]
@@ -172,6 +173,12 @@ def _stability_where_solved(rod, length, end: EndCondition, N, M0, xs, frames, e
     defined = result == RESULTS.successful
     rotation = jnp.where(defined, exact_rotation(frames[0], end_frame, counted), jnp.nan)
     return jnp.where(defined, index, -1), jnp.where(defined, margin, jnp.nan), jnp.where(defined, push, 0.0), rotation
+
+
+def turns_flagged(result, rotation, end: EndCondition):
+    """`result` (one solve's, traced or not), `other_whole_turns` where the `rotation` its
+    rod holds has other whole turns than `end` asks for (where both are known)."""
+    return RESULTS.where(holds_turns(rotation, end.rotation), result, RESULTS.other_whole_turns)
 
 
 def stability_inputs(sol) -> tuple:
@@ -332,6 +339,7 @@ def solve(
     tested = test_stability and options.stability_pieces > 0
     if tested:
         index, margin, push, rotation = _stability_where_solved(rod, length, end, N, M0, xs, frames, frame_end[-1], result, options)
+        result = turns_flagged(result, rotation, end)
     else:
         index, margin, push = jnp.asarray(-1, jnp.int32), jnp.asarray(jnp.nan, dtype), jnp.zeros(6, dtype)
         rotation = jnp.asarray(jnp.nan, dtype)
@@ -480,6 +488,8 @@ def solve_boundary_value(
     sol = solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind)
     # One program made every field: one of them says whether they are concrete.
     if not (is_concrete(sol.residual) and jnp.ndim(sol.residual) == 0):
+        # Traced: flagged here (an eager call flags after its fallbacks, `_physical`).
+        sol = replaced(sol, result=turns_flagged(sol.result, sol.rotation, end))
         return raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _HINT) if throw else sol
     sol = _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind)
     if throw and not _status(sol)[0]:

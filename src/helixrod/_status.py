@@ -38,14 +38,14 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "twist-fluctuation theory, whose correction is no longer small, or no buckling "
         "transition because the plectoneme phase is stiffer than the extended one)."
     )
-    other_whole_turns = (
-        "The solve converged to an equilibrium that meets the end frame but holds other whole "
-        "turns than the end's total rotation asks for (another state of the same frames)."
-    )
     weights_not_settled = (
         "The weights of errors in variables did not settle: each solve with the weights of "
         "the last point moved it again (Orear's iteration did not converge), as where the "
         "model is far from the data (a large reduced chi2)."
+    )
+    other_whole_turns = (
+        "The solve converged to an equilibrium that meets the end frame but holds other whole "
+        "turns than the end's total rotation asks for (another state of the same frames)."
     )
 
 

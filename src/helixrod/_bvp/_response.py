@@ -340,7 +340,7 @@ def _turns_counted(kind, values, obs: tuple, sols: BoundaryValueSolution, concre
     turned = xp.where(counted, observed + 2.0 * np.pi * xp.round((rotation - observed) / (2.0 * np.pi)), observed)
     if concrete and int(kind) == LOADED:
         return (*obs[:3], jnp.asarray(turned)), sols
-    other = counted & ~holds_turns(rotation, xp.asarray(values[:, 3])) & (xp.asarray(kind) != LOADED)
+    other = counted & ~holds_turns(rotation, xp.asarray(values)[:, 3]) & (xp.asarray(kind) != LOADED)
     if concrete and not other.any():
         return obs, sols
     obs = (*obs[:3], jnp.where(xp.asarray(kind) == LOADED, turned, obs[3]))

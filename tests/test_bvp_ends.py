@@ -127,3 +127,25 @@ def test_bad_end_conditions_raise_clear_errors():
         hr.axial_ends(SPRING, 10.0, force=1.0, extension=2.0)
     with pytest.raises(ValueError, match="moment must be a scalar"):
         hr.axial_ends(SPRING, 10.0, force=1.0, moment=jnp.zeros(2))
+
+
+def test_the_homotopy_twists_an_end_by_its_whole_turns():
+    """The homotopy fallback's path to a gripped spring turned 3.3 turns past its unloaded
+    end: the end turns about the axis by the fraction t of all of it (the short way, without
+    the end's `rotation`: by the fraction of 0.3 turns), and arrives at the condition."""
+    from helixrod._lie import rotation_z, twist_angle
+
+    length = 5 * TURN
+    theta0 = float(hr.unloaded_observables(SPRING, length)[1])
+    h0 = float(hr.unloaded_observables(SPRING, length)[0])
+    turned = theta0 + 2 * np.pi * 3.3
+    end = hr.axial_ends(SPRING, length, extension=1.1 * h0, rotation=turned)[1].condition()
+    free = hr.axial_ends(SPRING, length, extension=h0, rotation=theta0)[1].condition()
+    arrived = end.homotopy(1.0, free.position, free.frame, theta0)
+    np.testing.assert_allclose(arrived.frame, end.frame, atol=1e-12)
+    np.testing.assert_allclose(arrived.position, end.position, atol=1e-12)
+    for t in (0.25, 0.5):
+        along = end.homotopy(t, free.position, free.frame, theta0)
+        np.testing.assert_allclose(along.frame, rotation_z(t * (turned - theta0)) @ free.frame, atol=1e-12)
+        short = dataclasses.replace(end, rotation=jnp.asarray(jnp.nan)).homotopy(t, free.position, free.frame, theta0)
+        assert float(twist_angle(short.frame @ free.frame.T)) == pytest.approx(t * 2 * np.pi * 0.3, abs=1e-9)

@@ -35,7 +35,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._compile import jit
 from .._geometry import unloaded_observables, unloaded_state
-from .._lie import check_rotation, gibbs, rotation_vector, rotation_z, so3_exp, twist_angle
+from .._lie import check_rotation, gibbs, rotation_vector, rotation_z, so3_exp
 from .._misc import finite_array, finite_scalar, float_dtype
 
 CLAMPED, LOADED, TWEEZER = 0, 1, 2
@@ -121,18 +121,24 @@ class EndCondition(AbstractEnd):
 
     def homotopy(self, t, x_free, frame_free, unloaded_rotation) -> "EndCondition":
         """The condition a fraction `t` of the way from the unloaded end (`t = 0`, at
-        `x_free`, `frame_free`).  The frame turns the short way, and where the condition
-        knows its total `rotation`, by as many whole turns more about $e_z$ as that lies
-        from `unloaded_rotation` (the unloaded end's, $\\Theta_0$): a twisted spring is
-        reached by twisting it, not by the nearest frame with fewer turns."""
-        turn = rotation_vector(frame_free.T @ self.frame)
-        short = twist_angle(self.frame @ frame_free.T)
-        whole = jnp.round((self.rotation - unloaded_rotation - short) / (2.0 * jnp.pi))
-        spin = rotation_z(t * 2.0 * jnp.pi * jnp.where(jnp.isfinite(whole), whole, 0.0))
+        `x_free`, `frame_free`).  Where the condition knows its total `rotation`, the end
+        turns about $e_z$ by that fraction of its rotation from `unloaded_rotation` (the
+        unloaded end's, $\\Theta_0$), whole turns included -- a twisted spring is reached by
+        twisting it, not by the nearest frame with fewer turns -- and by the same fraction of
+        what remains (nothing, for the ends of `axial_ends`); else the frame turns the short
+        way."""
+        turning = jnp.where(jnp.isfinite(self.rotation), self.rotation - unloaded_rotation, 0.0)
+        remaining = rotation_vector((rotation_z(turning) @ frame_free).T @ self.frame)
+        spin = rotation_z(t * turning)
         return eqx.tree_at(
             lambda e: (e.position, e.frame, e.force, e.moment),
             self,
-            (spin @ ((1 - t) * x_free + t * self.position), spin @ frame_free @ so3_exp(t * turn), t * self.force, t * self.moment),
+            (
+                spin @ ((1 - t) * x_free + t * rotation_z(-turning) @ self.position),
+                spin @ frame_free @ so3_exp(t * remaining),
+                t * self.force,
+                t * self.moment,
+            ),
         )
 
     def finite(self) -> Bool[Array, ""]:

@@ -79,7 +79,7 @@ def test_changing_tolerances_does_not_retrace():
 
 
 @pytest.mark.heavy
-def test_force_extension_command(tmp_path):
+def test_force_extension_command(tmp_path, monkeypatch):
     """`helixrod force-extension` (tests/test_cli.py has the other commands); its eager 4-segment
     curve is the compiled program of the next test."""
     out = tmp_path / "curve.json"
@@ -105,6 +105,21 @@ def test_force_extension_command(tmp_path):
     assert long.exit_code == 0, long.output
     text = " ".join(long.output.split())
     assert "F = 0.5 did not converge: The maximum number of steps" in text and "try --segments 8" in text
+    # A point that converged to other whole turns than the rotation held says so, not "did
+    # not converge" (the curve of the first command, its second point flagged by hand).
+    from helixrod.cli import _force_extension
+    from helixrod._status import set_code
+
+    def flagged(*args, **kwargs):
+        curve = hr.force_extension(*args, **kwargs)
+        return eqx.tree_at(lambda c: c.result, curve, set_code(curve.result, jnp.arange(4) == 1, hr.RESULTS.other_whole_turns))
+
+    monkeypatch.setattr(_force_extension, "force_extension", flagged)
+    turned = CliRunner().invoke(app, args[:-4])
+    assert turned.exit_code == 0, turned.output
+    text = " ".join(turned.output.split())
+    assert "F = 0.01 holds other whole turns: The solve converged" in text and "try --segments" not in text
+    assert "0 did not converge, 1 hold other whole turns than the rotation held" in text
 
 
 @pytest.mark.heavy

@@ -15,6 +15,7 @@ from rich.table import Table
 
 from .. import RESULTS, force_extension
 from .._misc import write_atomically
+from .._status import has_code
 from ..plot import plot_response
 from ._numbers import grid, rod_option
 from ._paths import output_file
@@ -73,14 +74,18 @@ def force_extension_command(
             f"{float(getattr(curve, 'bulk_' + other)[i]):.6g}", "yes" if bool(curve.ok[i]) else "no",
         )
     console.print(table)
+    turned = has_code(curve.result, RESULTS.other_whole_turns)  # converged, to other whole turns
     failed = np.flatnonzero(~np.asarray(curve.ok))
     for i in failed[:10]:  # the requested force, and why its solve failed
         reason = RESULTS[jax.tree.map(lambda code, i=i: code[i], curve.result)]
-        console.print(f"F = {float(force_values[i]):.4g} did not converge: {reason}", soft_wrap=True)
-    if failed.size:
+        what = "holds other whole turns" if turned[i] else "did not converge"
+        console.print(f"F = {float(force_values[i]):.4g} {what}: {reason}", soft_wrap=True)
+    if (~turned[failed]).any():
         console.print(f"a long or stretched rod may need more shooting pieces: try --segments {2 * segments}", soft_wrap=True)
-    console.print(f"{force_values.size} points in {seconds:.2f} s (compilation included); "
-                  f"{int(np.sum(~np.asarray(curve.ok)))} did not converge")
+    summary = f"{int((~turned[failed]).sum())} did not converge"
+    if turned.any():
+        summary += f", {int(turned.sum())} hold other whole turns than the rotation held"
+    console.print(f"{force_values.size} points in {seconds:.2f} s (compilation included); {summary}")
     if out is not None:
         text = json.dumps({"length": length, **{f: np.asarray(getattr(curve, f)).tolist() for f in CURVE_FIELDS}}, indent=1)
         write_atomically(out, lambda f: f.write(text), binary=False)

@@ -336,14 +336,13 @@ def _turns_counted(kind, values, obs: tuple, sols: BoundaryValueSolution, concre
     one-operation programs to compile)."""
     xp = np if concrete else jnp
     rotation, observed = xp.asarray(sols.rotation), xp.asarray(obs[3])
-    counted = xp.isfinite(rotation)
-    turned = xp.where(counted, observed + 2.0 * np.pi * xp.round((rotation - observed) / (2.0 * np.pi)), observed)
-    if concrete and int(kind) == LOADED:
-        return (*obs[:3], jnp.asarray(turned)), sols
-    other = counted & ~holds_turns(rotation, xp.asarray(values)[:, 3]) & (xp.asarray(kind) != LOADED)
+    counted, loaded = xp.isfinite(rotation), xp.asarray(kind) == LOADED
+    # `_lie.unwrap_near`, in the namespace of the curve (its jnp.round would compile a program).
+    nearest = observed + 2.0 * np.pi * xp.round((rotation - observed) / (2.0 * np.pi))
+    obs = (*obs[:3], jnp.asarray(xp.where(counted & loaded, nearest, observed)))
+    other = counted & ~loaded & ~holds_turns(rotation, xp.asarray(values)[:, 3])
     if concrete and not other.any():
         return obs, sols
-    obs = (*obs[:3], jnp.where(xp.asarray(kind) == LOADED, turned, obs[3]))
     obs = tuple(jnp.where(other, jnp.nan, column) for column in obs)
     return obs, replaced(sols, result=set_code(sols.result, other, RESULTS.other_whole_turns))
 

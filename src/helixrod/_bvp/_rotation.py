@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._lie import twist_angle
+from .._lie import twist_angle, unwrap_near
 
 #: The largest change of the angle between two steps that is trusted (radians).
 LARGEST_STEP = 1.0
@@ -49,10 +49,6 @@ def reference_angle(frame: Float[Array, "... 3 3"]) -> tuple[Array, Array]:
     frames `(..., 3, 3)` (columns $d_1, d_2, d_3$), in $(-\\pi, \\pi]$ -- the twist of the
     frame about $e_z$ (`twist_angle`, whose swing is $Q$) -- and $1 + t_z$."""
     return twist_angle(frame), 1.0 + frame[..., 2, 2]
-
-
-def _wrapped(angle):
-    return angle - 2.0 * jnp.pi * jnp.round(angle / (2.0 * jnp.pi))
 
 
 class RotationCount(eqx.Module):
@@ -75,7 +71,7 @@ def start_count(frame: Float[Array, "3 3"]) -> RotationCount:
 def advance(count: RotationCount, frame: Float[Array, "3 3"]) -> RotationCount:
     """The count one step on, at the lab `frame`."""
     angle, pole = reference_angle(frame)
-    step = _wrapped(angle - count.angle)
+    step = unwrap_near(angle - count.angle, 0.0)
     return RotationCount(angle, count.total + step, jnp.maximum(count.largest, jnp.abs(step)), jnp.minimum(count.pole, pole))
 
 
@@ -90,8 +86,7 @@ def counted_rotation(counts: RotationCount) -> Float[Array, ""]:
 def exact_rotation(start_frame, end_frame, counted) -> Float[Array, ""]:
     """$\\Theta = \\psi(L) - \\psi(0)$ from the exact start and end frames, its whole turns
     those nearest the `counted` rotation (NaN where that is)."""
-    difference = reference_angle(end_frame)[0] - reference_angle(start_frame)[0]
-    return difference + 2.0 * jnp.pi * jnp.round((counted - difference) / (2.0 * jnp.pi))
+    return unwrap_near(reference_angle(end_frame)[0] - reference_angle(start_frame)[0], counted)
 
 
 def holds_turns(rotation, asked) -> jax.Array:

@@ -250,6 +250,35 @@ def test_a_curve_point_holding_other_whole_turns_is_flagged():
     np.testing.assert_allclose(curve.solutions.rotation, theta0 + offsets, atol=1e-9)
 
 
+
+def test_continuation_takes_long_steps_in_substeps():
+    """A step too long to converge from the previous point, or one that turns the end by
+    whole turns, is taken in substeps (`_solve_from`).  Before, whole-turn steps of a
+    prescribed rotation found the end frame unchanged and stayed on the first point's
+    turns (flagged `other_whole_turns`), and moment steps of -0.3 failed from -0.6 on.
+    Checked: every point holds the turns asked for (counted along its rod), and points
+    reached along other sequences of substeps are the same states."""
+    length = 2 * TURN
+    theta0 = length * SPRING_NORM
+    turns = jnp.array([0.0, 1.0, 2.0, 3.0])
+    whole = hr.rotation_response(SPRING, length, theta0 + 2 * np.pi * turns, force=0.01, segments=4)
+    assert bool(jnp.all(whole.ok))
+    np.testing.assert_allclose(whole.solutions.rotation, theta0 + 2 * np.pi * turns, atol=1e-9)
+    assert np.all(np.diff(np.asarray(whole.moment)) > 0.4)  # twisted further each turn, not flagged
+    other = hr.rotation_response(SPRING, length, theta0 + 2 * np.pi * jnp.array([0.0, 0.5, 2.0, 3.0]), force=0.01, segments=4)
+    for name in ("moment", "extension"):
+        np.testing.assert_allclose(getattr(whole, name)[2:], getattr(other, name)[2:], atol=1e-9)
+    # Substeps cost solves: the points taken in one step cost one.
+    assert int(whole.solutions.num_steps[0]) < 10 < int(whole.solutions.num_steps[1])
+
+    moments = jnp.array([0.0, -0.3, -0.6, -0.9])
+    pulled = hr.axial_response(SPRING, length, force=0.02, moment=moments, segments=4)
+    assert bool(jnp.all(pulled.ok))
+    np.testing.assert_allclose(pulled.moment, moments, atol=1e-12)
+    reordered = hr.axial_response(SPRING, length, force=0.02, moment=jnp.array([0.0, -0.45, -0.9, -0.6]), segments=4)
+    for name in ("rotation", "extension"):
+        np.testing.assert_allclose(getattr(pulled, name)[2:], getattr(reordered, name)[jnp.array([3, 2])], atol=1e-9)
+
 @pytest.mark.heavy
 def test_independent_points_start_from_their_bulk_helix():
     """In independent mode each point starts from the default guess made from its own bulk

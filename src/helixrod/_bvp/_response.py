@@ -6,7 +6,8 @@ fixed end rotation (a magnetic tweezer), rotation curves at fixed force (tweezer
 extension against turns) or at fixed extension (a spring twisted between grips), and in
 general any sequence of control pairs (`axial_response`).  Each point is one boundary-value
 solve; by default the points are solved in order, each warm-started from the previous one
-(continuation), inside one compiled `lax.scan`; `mode="independent"` solves them in parallel
+(continuation), inside one compiled `lax.scan` -- a step that does not converge at once, or
+turns a prescribed end rotation by more than 1.5 rad, in substeps (`_solve_from`); `mode="independent"` solves them in parallel
 (`vmap`), each from the bulk-helix guess -- fine where that guess is good (a load through the
 axis is an initial-value problem and needs no continuation).
 
@@ -66,7 +67,7 @@ class ResponseCurve(eqx.Module):
     (shape `(n,)`): `force`, `moment`, `extension`, `rotation` of the finite rod (controls
     as prescribed, responses as solved; NaN where a solve failed, or where the rod holds
     other whole turns than a prescribed rotation asks for, `other_whole_turns`: a
-    continuation step that turns the end by more than half a turn may land there; module
+    `guess` with other turns, or an independent point whose bulk guess has them; module
     docstring for the conventions) and `bulk_force`, `bulk_moment`, `bulk_extension`, `bulk_rotation` of the
     uniform helix with the same two controls (extension and rotation totals over $L$);
     `result` (a `RESULTS` code per point) and `ok`, `bulk_ok`, `residual`, `num_steps`;
@@ -212,8 +213,8 @@ def _continuation_start(rod, length, kind, values, options: BoundaryValueOptions
     """The carry of continuation mode before the first point `values[0]` (4,): its warm
     start (from `guess` where that solve succeeds, else the default, made from the first
     point's bulk helix: with the whole turns of a rotation held there, which the end frame
-    alone does not count), the unloaded bulk guess, and the rotation near which its whole
-    turns are counted."""
+    alone does not count), the unloaded bulk guess, the rotation near which its whole
+    turns are counted, and the controls the warm start was solved at (`values[0]`)."""
     first = values[0]
     start, theta0, unloaded = _curve_setup(rod, length)
     first_end = axial_end_condition(rod, length, kind, first)
@@ -222,7 +223,7 @@ def _continuation_start(rod, length, kind, values, options: BoundaryValueOptions
     if guess is not None:
         solved = no_gradient(solve(rod, length, start, first_end, guess, None, options, test_stability=False))
         guess0 = jax.tree.map(lambda a, b: jnp.where(solved.ok, a, b), solved.warm_start(), guess0)
-    return guess0, unloaded, jnp.where(bulk0.ok, bulk0.rotation, theta0)
+    return guess0, unloaded, jnp.where(bulk0.ok, bulk0.rotation, theta0), first
 
 
 def _continuation_carry(dtype, segments: int, placement=None):
@@ -233,27 +234,86 @@ def _continuation_carry(dtype, segments: int, placement=None):
         return jax.ShapeDtypeStruct(shape, dtype, sharding=placement)
 
     warm_start = WarmStart(force=spec(3), moment0=spec(3), node_position=spec(segments, 3), node_frame=spec(segments, 3, 3))
-    return warm_start, (spec(3), spec(), spec()), spec()
+    return warm_start, (spec(3), spec(), spec()), spec(), spec(4)
+
+
+#: The most solves of one continuation point (its substeps, `_continuation_points`).
+CONTINUATION_TRIES = 16
+
+#: A failed continuation substep is retried this much shorter, at most `SHRINKS` times
+#: per point.  Not a half: halving lands again on a point where a dyadic substep failed
+#: (a bifurcation at exactly three half-turns, on the spring of `tests/test_bvp_response.py`).
+SHRINK = 0.4
+SHRINKS = 3
+
+#: The largest change of a prescribed end rotation in one continuation substep (radians).
+#: The end frame fixes the rotation only modulo a whole turn, and a solve warm-started
+#: from the previous point may turn the end the short way once a step nears half a turn.
+#: Not a rational multiple of pi, for the same reason as `SHRINK`.
+MAX_ROTATION_STEP = 1.5
+
+
+def _solve_from(rod, length, kind, start, v_from, v, guess, options: BoundaryValueOptions):
+    """The solve at controls `v` (4,) warm-started from `guess`, solved at `v_from`: in one
+    step where that converges, else in substeps from `v_from` towards `v`, each
+    warm-started from the last converged one and `SHRINK` times shorter after a failure
+    (a prescribed rotation in substeps of at most `MAX_ROTATION_STEP`), until `v` is
+    reached, `SHRINKS` failures or `CONTINUATION_TRIES` solves.  Returns `(sol, warm
+    start, controls)`: the solution at `v` (its `num_steps` those of all the solves; where
+    `v` was not reached, the result of the last failed solve), and the last converged
+    state and its controls (the next point's start).  One `solve` in a `while_loop`: a
+    point that converges at once costs one solve, and the program holds one solve, not
+    one per try."""
+    turn = jnp.where(kind == LOADED, 0.0, jnp.abs(v[3] - v_from[3]))
+    first = jnp.where(turn > MAX_ROTATION_STEP, MAX_ROTATION_STEP / jnp.maximum(turn, MAX_ROTATION_STEP), 1.0)
+    shortest = first * SHRINK**SHRINKS
+
+    def solved_at(t, guess):
+        end = axial_end_condition(rod, length, kind, v_from + t * (v - v_from))
+        return solve(rod, length, start, end, guess, None, options, test_stability=False)
+
+    def unfinished(state):
+        _, done, step, tries, *_ = state
+        return (done < 1) & (step > 0.5 * shortest) & (tries < CONTINUATION_TRIES)
+
+    def attempt(state):
+        guess, done, step, tries, steps, failure, _ = state
+        # The last substep lands on `v` exactly, not on a sum of fractions a few ulp short.
+        t = jnp.where(done + step >= 1 - 1e-9, 1.0, done + step)
+        sol = solved_at(t, guess)
+        ok = sol.ok
+        guess = jax.tree.map(lambda a, b: jnp.where(ok, a, b), no_gradient(sol.warm_start()), guess)
+        return (guess, jnp.where(ok, t, done), jnp.where(ok, step, SHRINK * step), tries + 1, steps + sol.num_steps,
+                RESULTS.where(ok, failure, sol.result), sol)
+
+    # The loop carries a solution: its shapes, without another solve in the program.
+    blank = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(solved_at, 1.0, guess))
+    zero = jnp.zeros((), v.dtype)
+    state = (guess, zero, first.astype(v.dtype), jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), RESULTS.successful, blank)
+    guess, done, _, _, steps, failure, sol = jax.lax.while_loop(unfinished, attempt, state)
+    result = RESULTS.where(done >= 1, sol.result, failure)
+    # (Not v_from + done (v - v_from) where nothing converged: a NaN control would spoil it.)
+    reached = jnp.where(done >= 1, v, jnp.where(done > 0, v_from + done * (v - v_from), v_from))
+    return replaced(sol, result=result, num_steps=steps), guess, reached
 
 
 def _continuation_points(rod, length, kind, values, options: BoundaryValueOptions, carry):
     """Continuation mode: the points in order, each warm-started from the last converged
-    one (`lax.scan` from `carry`); returns the carry after the last point and the outputs."""
+    state (`lax.scan` from `carry`; in substeps where one step does not converge,
+    `_solve_from`); returns the carry after the last point and the outputs."""
     start, _, _ = _curve_setup(rod, length)
     index = jnp.asarray(CONTROL_INDEX)[kind]
 
     def step(carry, v):
-        guess, bulk_guess, hint = carry
-        end = axial_end_condition(rod, length, kind, v)
-        sol = solve(rod, length, start, end, guess, None, options, test_stability=False)
+        guess, bulk_guess, hint, v_from = carry
+        sol, guess, v_from = _solve_from(rod, length, kind, start, v_from, v, guess, options)
         bulk = bulk_helix_at(rod, length, index, v, bulk_guess)
         obs, bulk_obs = _observe(rod, length, kind, sol, bulk, v, hint)
         # A failed point does not spoil the warm start of the next one.
         keep = lambda new, old, ok: jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, old)  # noqa: E731
-        guess = keep(no_gradient(sol.warm_start()), guess, sol.ok)
         bulk_guess = keep(no_gradient((bulk.u, bulk.mu1, bulk.mu2)), bulk_guess, bulk.ok)
         hint = jnp.where(sol.ok, obs[3], hint)
-        return (guess, bulk_guess, hint), (obs, bulk_obs, sol, bulk.ok)
+        return (guess, bulk_guess, hint, v_from), (obs, bulk_obs, sol, bulk.ok)
 
     return jax.lax.scan(step, carry, values)
 
@@ -459,7 +519,9 @@ def axial_response(
     `moment`, `extension`, `rotation` (scalars or `(n,)` arrays, broadcast; the pairs of
     `axial_ends`), each point solved by `solve_boundary_value` in the canonical placement.
 
-    `mode`: `"continuation"` (default; in order, each solve warm-started from the previous)
+    `mode`: `"continuation"` (default; in order, each solve warm-started from the previous,
+    in substeps where a step fails or turns a prescribed rotation by more than 1.5 rad;
+    `num_steps` counts the root steps of all of a point's solves)
     or `"independent"` (vmapped solves from the bulk guess).  A responding rotation
     (force and moment held) holds the whole turns counted along each point's rod
     (`BoundaryValueSolution.rotation`); where they are not counted (no stability test,

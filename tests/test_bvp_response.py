@@ -278,6 +278,30 @@ def test_continuation_takes_long_steps_in_substeps():
     reordered = hr.axial_response(SPRING, length, force=0.02, moment=jnp.array([0.0, -0.45, -0.9, -0.6]), segments=4)
     for name in ("rotation", "extension"):
         np.testing.assert_allclose(getattr(pulled, name)[2:], getattr(reordered, name)[jnp.array([3, 2])], atol=1e-9)
+    # Its end is loaded by a moment: stability is not defined (index -1), so none is lost.
+    # (Before, those points counted as unstable: a "branch point" at M = -1e-13.)
+    assert np.array_equal(pulled.instability_index, [0, -1, -1, -1])
+    assert np.isnan(float(pulled.critical)) and pulled.critical_kind == "none"
+
+
+@pytest.mark.heavy
+def test_a_curve_ending_at_a_fold_reports_it():
+    """The spring twisted under F = 0.2: its twisted branch folds back near 2.8 half-turns
+    past the unloaded end, and the points beyond fail (no equilibrium nearby).  The curve
+    reports the fold there (stable point -> failed point, the margin falling to zero), at
+    the rotation where `follow_branch`, which passes the fold by pseudo-arclength
+    continuation, finds the parameter turning back.  (Before, a failed point after a
+    stable one was no loss of stability: `critical` NaN.)"""
+    length = 2 * TURN
+    theta0 = length * SPRING_NORM
+    curve = hr.rotation_response(SPRING, length, theta0 + np.pi * jnp.array([2.7, 2.75, 2.85, 2.9]), force=0.2, segments=4)
+    assert np.array_equal(curve.ok, [True, True, False, False]) and np.array_equal(curve.instability_index[:2], [0, 0])
+    assert curve.critical_kind == "fold"
+    end = lambda rotation: hr.axial_ends(SPRING, length, force=0.2, rotation=rotation)[1]  # noqa: E731
+    branch = hr.follow_branch(SPRING, length, end, (theta0 + 2.7 * np.pi, theta0 + 2.9 * np.pi), segments=4)
+    (fold,) = branch.points("fold")
+    assert float(curve.critical) == pytest.approx(float(fold.parameter), rel=1e-8)  # measured 3e-10
+    assert 2.75 * np.pi < float(curve.critical) - theta0 < 2.85 * np.pi
 
 @pytest.mark.heavy
 def test_independent_points_start_from_their_bulk_helix():

@@ -79,8 +79,9 @@ class ResponseCurve(eqx.Module):
     does (concrete inputs; under `jax.jit`/`vmap` such a point keeps index -1);
     `solutions.stability_pieces` is the most any point was tested on.  `critical`: the
     value of the swept control at which the curve first loses stability (between the last
-    stable point and the next, located by bisection on the solutions; NaN if it never
-    does, or under `jax.jit`/`vmap`), and `critical_kind`: `"branch point"` (the branch
+    stable point and the next -- unstable, or failed where the branch ends at a fold --
+    located by bisection on the solutions; NaN if it never does, where stability is not
+    defined, or under `jax.jit`/`vmap`), and `critical_kind`: `"branch point"` (the branch
     goes on through it, now unstable: a bifurcation, as Euler's), `"fold"` (the branch ends
     there: no nearby equilibrium beyond it), or `"none"`; `critical_force`,
     `critical_rotation` name it.
@@ -627,35 +628,46 @@ def _response(
 CRITICAL_BISECTIONS = 40
 
 
+#: A stable point followed by a failed one marks a fold only where the margin of the
+#: bisection's last stable trial has fallen below this fraction of that point's: at a fold
+#: it goes to zero (like the square root of the distance to it); a solve that failed for
+#: another reason leaves it where it was.
+FOLD_MARGIN = 1e-2
+
+
 def _first_loss_of_stability(rod, length, kind, values, swept, sols, options):
-    """(critical value of the swept control, kind) of the first stable -> unstable step of
-    a continuation curve, by bisection: each trial solve starts from the stable side (its
-    stability resolved as the points' are, `resolved_stability`).  A
+    """(critical value of the swept control, kind) of the first loss of stability of a
+    continuation curve -- a stable point followed by an unstable one, or by a failed one
+    where the branch ends at a fold -- by bisection: each trial solve starts from the
+    stable side (its stability resolved as the points' are, `resolved_stability`).  A
     branch point if the last unstable trial converged next to the stable side, a fold if
-    it did not converge or jumped away (no equilibrium nearby beyond it)."""
+    it did not converge or jumped away (no equilibrium nearby beyond it).  Points whose
+    stability is not defined (index -1: an end loaded by a moment) lose none."""
     ok = succeeded(sols.result)  # on the host: no one-operation programs to compile
-    stable = ok & (np.asarray(sols.instability_index) == 0)
-    lost = np.flatnonzero(stable[:-1] & ok[1:] & ~stable[1:])
-    if not lost.size:
-        return np.nan, "none"
-    i = int(lost[0])
+    index = np.asarray(sols.instability_index)
+    stable, unstable = ok & (index == 0), ok & (index > 0)
+    failed = ~ok & np.all(np.isfinite(np.asarray(values)), axis=1)
     column = AXIAL_OBSERVABLES.index(swept)
     start = unloaded_clamp(rod)
     take = lambda j: jax.tree.map(lambda a: a[j], sols)  # noqa: E731
-    good, bad = take(i), take(i + 1)
-    a, b = values[i], values[i + 1]
     distance = lambda s, t: float(jnp.linalg.norm(jnp.concatenate([s.force - t.force, s.moment0 - t.moment0])))  # noqa: E731
-    first = distance(good, bad)
-    for _ in range(CRITICAL_BISECTIONS):
-        mid = 0.5 * (a + b)
-        end = axial_end_condition(rod, length, kind, mid)
-        trial = resolved_stability(rod, length, end, solve(rod, length, start, end, good.warm_start(), None, options), options)
-        if bool(trial.ok) and float(trial.stability_margin) > 0:
-            a, good = mid, trial
-        else:
-            b, bad = mid, trial
-    close = bool(bad.ok) and distance(good, bad) < 1e-3 * max(first, 1e-300)
-    return float(0.5 * (a[column] + b[column])), "branch point" if close else "fold"
+    for i in np.flatnonzero(stable[:-1] & (unstable[1:] | failed[1:])):
+        good, bad = take(i), take(i + 1)
+        a, b = values[i], values[i + 1]
+        first = distance(good, bad)
+        for _ in range(CRITICAL_BISECTIONS):
+            mid = 0.5 * (a + b)
+            end = axial_end_condition(rod, length, kind, mid)
+            trial = resolved_stability(rod, length, end, solve(rod, length, start, end, good.warm_start(), None, options), options)
+            if bool(trial.ok) and float(trial.stability_margin) > 0:
+                a, good = mid, trial
+            else:
+                b, bad = mid, trial
+        if failed[i + 1] and not float(good.stability_margin) < FOLD_MARGIN * float(sols.stability_margin[i]):
+            continue  # the failure was not the end of the branch
+        close = bool(bad.ok) and distance(good, bad) < 1e-3 * max(first, 1e-300)
+        return float(0.5 * (a[column] + b[column])), "branch point" if close else "fold"
+    return np.nan, "none"
 
 
 def _swept_values(values, name, what):

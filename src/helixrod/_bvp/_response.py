@@ -215,7 +215,8 @@ def _continuation_start(rod, length, kind, values, options: BoundaryValueOptions
     start (from `guess` where that solve succeeds, else the default, made from the first
     point's bulk helix: with the whole turns of a rotation held there, which the end frame
     alone does not count), the unloaded bulk guess, the rotation near which its whole
-    turns are counted, and the controls the warm start was solved at (`values[0]`)."""
+    turns are counted, the controls the warm start was solved at (`values[0]`), and
+    whether the last point converged (yes)."""
     first = values[0]
     start, theta0, unloaded = _curve_setup(rod, length)
     first_end = axial_end_condition(rod, length, kind, first)
@@ -224,7 +225,7 @@ def _continuation_start(rod, length, kind, values, options: BoundaryValueOptions
     if guess is not None:
         solved = no_gradient(solve(rod, length, start, first_end, guess, None, options, test_stability=False))
         guess0 = jax.tree.map(lambda a, b: jnp.where(solved.ok, a, b), solved.warm_start(), guess0)
-    return guess0, unloaded, jnp.where(bulk0.ok, bulk0.rotation, theta0), first
+    return guess0, unloaded, jnp.where(bulk0.ok, bulk0.rotation, theta0), first, jnp.asarray(True)
 
 
 def _continuation_carry(dtype, segments: int, placement=None):
@@ -235,15 +236,17 @@ def _continuation_carry(dtype, segments: int, placement=None):
         return jax.ShapeDtypeStruct(shape, dtype, sharding=placement)
 
     warm_start = WarmStart(force=spec(3), moment0=spec(3), node_position=spec(segments, 3), node_frame=spec(segments, 3, 3))
-    return warm_start, (spec(3), spec(), spec()), spec(), spec(4)
+    return warm_start, (spec(3), spec(), spec()), spec(), spec(4), jax.ShapeDtypeStruct((), jnp.bool_, sharding=placement)
 
 
 #: The most solves of one continuation point (its substeps, `_continuation_points`).
 CONTINUATION_TRIES = 16
 
 #: A failed continuation substep is retried this much shorter, at most `SHRINKS` times
-#: per point.  Not a half: halving lands again on a point where a dyadic substep failed
-#: (a bifurcation at exactly three half-turns, on the spring of `tests/test_bvp_response.py`).
+#: per point, and not at all after a point that failed (past a fold, where no substep
+#: converges, each point would pay `SHRINKS` more failed solves).  Not a half: halving
+#: lands again on a point where a dyadic substep failed (a fold near 2.8 half-turns, on the
+#: spring of `tests/test_bvp_response.py`, met by substeps from 2 to 4 half-turns).
 SHRINK = 0.4
 SHRINKS = 3
 
@@ -254,12 +257,12 @@ SHRINKS = 3
 MAX_ROTATION_STEP = 1.5
 
 
-def _solve_from(rod, length, kind, start, v_from, v, guess, options: BoundaryValueOptions):
+def _solve_from(rod, length, kind, start, v_from, v, guess, retry, options: BoundaryValueOptions):
     """The solve at controls `v` (4,) warm-started from `guess`, solved at `v_from`: in one
     step where that converges, else in substeps from `v_from` towards `v`, each
     warm-started from the last converged one and `SHRINK` times shorter after a failure
     (a prescribed rotation in substeps of at most `MAX_ROTATION_STEP`), until `v` is
-    reached, `SHRINKS` failures or `CONTINUATION_TRIES` solves.  Returns `(sol, warm
+    reached, `SHRINKS` failures (one where not `retry`) or `CONTINUATION_TRIES` solves.  Returns `(sol, warm
     start, controls)`: the solution at `v` (its `num_steps` those of all the solves; where
     `v` was not reached, the result of the last failed solve), and the last converged
     state and its controls (the next point's start).  One `solve` in a `while_loop`: a
@@ -267,7 +270,7 @@ def _solve_from(rod, length, kind, start, v_from, v, guess, options: BoundaryVal
     one per try."""
     turn = jnp.where(kind == LOADED, 0.0, jnp.abs(v[3] - v_from[3]))
     first = jnp.where(turn > MAX_ROTATION_STEP, MAX_ROTATION_STEP / jnp.maximum(turn, MAX_ROTATION_STEP), 1.0)
-    shortest = first * SHRINK**SHRINKS
+    shortest = first * jnp.where(retry, SHRINK**SHRINKS, 1.0)
 
     def solved_at(t, guess):
         end = axial_end_condition(rod, length, kind, v_from + t * (v - v_from))
@@ -306,15 +309,15 @@ def _continuation_points(rod, length, kind, values, options: BoundaryValueOption
     index = jnp.asarray(CONTROL_INDEX)[kind]
 
     def step(carry, v):
-        guess, bulk_guess, hint, v_from = carry
-        sol, guess, v_from = _solve_from(rod, length, kind, start, v_from, v, guess, options)
+        guess, bulk_guess, hint, v_from, last_ok = carry
+        sol, guess, v_from = _solve_from(rod, length, kind, start, v_from, v, guess, last_ok, options)
         bulk = bulk_helix_at(rod, length, index, v, bulk_guess)
         obs, bulk_obs = _observe(rod, length, kind, sol, bulk, v, hint)
         # A failed point does not spoil the warm start of the next one.
         keep = lambda new, old, ok: jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, old)  # noqa: E731
         bulk_guess = keep(no_gradient((bulk.u, bulk.mu1, bulk.mu2)), bulk_guess, bulk.ok)
         hint = jnp.where(sol.ok, obs[3], hint)
-        return (guess, bulk_guess, hint, v_from), (obs, bulk_obs, sol, bulk.ok)
+        return (guess, bulk_guess, hint, v_from, sol.ok), (obs, bulk_obs, sol, bulk.ok)
 
     return jax.lax.scan(step, carry, values)
 

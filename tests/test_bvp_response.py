@@ -7,6 +7,7 @@ Compiled programs: the curves of the spring at fixed rotation share one jitted f
 curves compile programs of their own: those tests are slow.
 """
 
+import dataclasses
 import json
 
 import equinox as eqx
@@ -120,6 +121,24 @@ def test_force_extension_command(tmp_path, monkeypatch):
     text = " ".join(turned.output.split())
     assert "F = 0.01 holds other whole turns: The solve converged" in text and "try --segments" not in text
     assert "0 did not converge, 1 hold other whole turns than the rotation held" in text
+    # The stability of each point, and a fold that ends the branch: the points beyond it did
+    # not converge for want of an equilibrium, not of shooting pieces (a fold placed by hand).
+    curve = json.loads(out.read_text())
+    assert curve["instability_index"] == [0, 0, 0, 0] and curve["critical_kind"] == "none"
+    assert "stable" in result.output and "loses stability" not in result.output
+
+    def folded(*args, **kwargs):
+        curve = hr.force_extension(*args, **kwargs)
+        curve = eqx.tree_at(lambda c: (c.result, c.critical), curve,
+                            (set_code(curve.result, jnp.arange(4) == 3, hr.RESULTS.max_steps_reached), jnp.asarray(0.025)))
+        return dataclasses.replace(curve, critical_kind="fold")
+
+    monkeypatch.setattr(_force_extension, "force_extension", folded)
+    ended = CliRunner().invoke(app, args[:-4])
+    assert ended.exit_code == 0, ended.output
+    text = " ".join(ended.output.split())
+    assert "loses stability at F = 0.025: a fold: the branch ends there" in text
+    assert "F = 0.03 did not converge (beyond the fold)" in text and "try --segments" not in text
 
 
 @pytest.mark.heavy

@@ -21,7 +21,14 @@ from ._numbers import grid, rod_option
 from ._paths import output_file
 
 #: The curve's fields written by ``--out`` (with the rod's ``length``).
-CURVE_FIELDS = ("force", "moment", "extension", "rotation", "bulk_force", "bulk_moment", "bulk_extension", "bulk_rotation", "ok")
+CURVE_FIELDS = ("force", "moment", "extension", "rotation", "bulk_force", "bulk_moment", "bulk_extension", "bulk_rotation", "ok",
+                "instability_index", "stability_margin")
+
+#: What a loss of stability means for the points beyond it (`ResponseCurve.critical_kind`).
+CRITICAL_MEANING = {
+    "fold": "a fold: the branch ends there, and the points beyond have no equilibrium near it",
+    "branch point": "a branch point: the branch goes on beyond it, unstable",
+}
 
 
 def force_extension_command(
@@ -65,29 +72,39 @@ def force_extension_command(
     name = "moment" if moment is not None else "rotation"
     other = "rotation" if moment is not None else "moment"
     table = Table(title=f"force-extension, L = {length:.4g} ({turns:g} turns), {name} held")
-    for col in ("F", "h", "h bulk", "h - h bulk", other, f"{other} bulk", "ok"):
+    for col in ("F", "h", "h bulk", "h - h bulk", other, f"{other} bulk", "ok", "stable"):
         table.add_column(col, justify="right")
+    index = np.asarray(curve.instability_index)
     for i in range(force_values.size):
+        ok = bool(curve.ok[i])
+        stable = "-" if not ok or index[i] < 0 else "yes" if index[i] == 0 else f"no ({index[i]})"
         table.add_row(
             f"{float(force_values[i]):.4g}", f"{float(curve.extension[i]):.6g}", f"{float(curve.bulk_extension[i]):.6g}",
             f"{float(curve.extension[i] - curve.bulk_extension[i]):+.3e}", f"{float(getattr(curve, other)[i]):.6g}",
-            f"{float(getattr(curve, 'bulk_' + other)[i]):.6g}", "yes" if bool(curve.ok[i]) else "no",
+            f"{float(getattr(curve, 'bulk_' + other)[i]):.6g}", "yes" if ok else "no", stable,
         )
     console.print(table)
+    critical = float(curve.critical)
+    beyond = np.zeros(force_values.size, bool)  # the points past a fold that ends the branch
+    if np.isfinite(critical):
+        console.print(f"loses stability at F = {critical:.6g}: {CRITICAL_MEANING[curve.critical_kind]}", soft_wrap=True)
+        if curve.critical_kind == "fold":
+            beyond = (np.asarray(force_values) - critical) * (float(force_values[0]) - critical) < 0
     turned = has_code(curve.result, RESULTS.other_whole_turns)  # converged, to other whole turns
     failed = np.flatnonzero(~np.asarray(curve.ok))
     for i in failed[:10]:  # the requested force, and why its solve failed
         reason = RESULTS[jax.tree.map(lambda code, i=i: code[i], curve.result)]
-        what = "holds other whole turns" if turned[i] else "did not converge"
+        what = "holds other whole turns" if turned[i] else "did not converge" + (" (beyond the fold)" if beyond[i] else "")
         console.print(f"F = {float(force_values[i]):.4g} {what}: {reason}", soft_wrap=True)
-    if (~turned[failed]).any():
+    if (~turned[failed] & ~beyond[failed]).any():
         console.print(f"a long or stretched rod may need more shooting pieces: try --segments {2 * segments}", soft_wrap=True)
     summary = f"{int((~turned[failed]).sum())} did not converge"
     if turned.any():
         summary += f", {int(turned.sum())} hold other whole turns than the rotation held"
     console.print(f"{force_values.size} points in {seconds:.2f} s (compilation included); {summary}")
     if out is not None:
-        text = json.dumps({"length": length, **{f: np.asarray(getattr(curve, f)).tolist() for f in CURVE_FIELDS}}, indent=1)
+        fields = {f: np.asarray(getattr(curve, f)).tolist() for f in CURVE_FIELDS}
+        text = json.dumps({"length": length, **fields, "critical_force": critical, "critical_kind": curve.critical_kind}, indent=1)
         write_atomically(out, lambda f: f.write(text), binary=False)
         console.print(f"wrote {out}")
     if plot is not None:

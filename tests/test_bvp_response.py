@@ -319,7 +319,7 @@ def test_a_curve_ending_at_a_fold_reports_it():
     end = lambda rotation: hr.axial_ends(SPRING, length, force=0.2, rotation=rotation)[1]  # noqa: E731
     branch = hr.follow_branch(SPRING, length, end, (theta0 + 2.7 * np.pi, theta0 + 2.9 * np.pi), segments=4)
     (fold,) = branch.points("fold")
-    assert float(curve.critical) == pytest.approx(float(fold.parameter), rel=1e-8)  # measured 3e-10
+    assert float(curve.critical) == pytest.approx(float(fold.parameter), rel=1e-8)  # measured 1.5e-10
     assert 2.75 * np.pi < float(curve.critical) - theta0 < 2.85 * np.pi
 
 @pytest.mark.heavy

@@ -303,6 +303,33 @@ def test_continuation_takes_long_steps_in_substeps():
     assert np.isnan(float(pulled.critical)) and pulled.critical_kind == "none"
 
 
+
+@pytest.mark.heavy
+def test_a_point_its_substeps_do_not_reach_is_not_a_success(monkeypatch):
+    """Where a point's substeps run out before reaching it, none of them failing (here with
+    the budget cut to two solves: a whole turn needs five substeps), the point is reported
+    failed (`max_steps_reached`), its last substep's state kept as the next point's start
+    with its controls.  (`_solve_from` traced afresh with the budget patched.)"""
+    from helixrod._bvp import _response
+    from helixrod._bvp._ends import TWEEZER
+
+    length = 2 * TURN
+    theta0 = length * SPRING_NORM
+    start, end = hr.axial_ends(SPRING, length, force=0.01, rotation=theta0)
+    solved = hr.solve_boundary_value(SPRING, length, start=start, end=end, segments=4)
+    options = hr.BoundaryValueOptions(segments=4)
+    v_from = jnp.array([0.01, 0.0, 0.0, theta0])
+    v = v_from.at[3].add(2 * np.pi)
+    monkeypatch.setattr(_response, "CONTINUATION_TRIES", 1)
+    monkeypatch.setattr(_response, "MAX_ROTATION_SUBSTEPS", 1)
+    clamp = _response._curve_setup(SPRING, length)[0]
+    step = jax.jit(lambda v_from, v, guess: _response._solve_from(
+        SPRING, length, TWEEZER, clamp, v_from, v, guess, jnp.asarray(True), options))
+    sol, _, reached = step(v_from, v, solved.warm_start())
+    assert not bool(sol.ok) and int(sol.result._value) == int(hr.RESULTS.max_steps_reached._value)
+    np.testing.assert_allclose(reached[3] - theta0, 2 * _response.MAX_ROTATION_STEP, rtol=1e-12)  # two substeps
+    assert int(sol.num_steps) > 0
+
 @pytest.mark.heavy
 def test_a_curve_ending_at_a_fold_reports_it():
     """The spring twisted under F = 0.2: its twisted branch folds back near 2.8 half-turns

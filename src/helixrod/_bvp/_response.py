@@ -239,7 +239,8 @@ def _continuation_carry(dtype, segments: int, placement=None):
     return warm_start, (spec(3), spec(), spec()), spec(), spec(4), jax.ShapeDtypeStruct((), jnp.bool_, sharding=placement)
 
 
-#: The most solves of one continuation point (its substeps, `_continuation_points`).
+#: The most solves of one continuation point beyond the substeps its prescribed rotation
+#: needs (`_solve_from`).
 CONTINUATION_TRIES = 16
 
 #: A failed continuation substep is retried this much shorter, at most `SHRINKS` times
@@ -256,21 +257,26 @@ SHRINKS = 3
 #: Not a rational multiple of pi, for the same reason as `SHRINK`.
 MAX_ROTATION_STEP = 1.5
 
+#: The most rotation substeps of one point (96 rad, some 15 turns, from the last point).
+MAX_ROTATION_SUBSTEPS = 64
+
 
 def _solve_from(rod, length, kind, start, v_from, v, guess, retry, options: BoundaryValueOptions):
     """The solve at controls `v` (4,) warm-started from `guess`, solved at `v_from`: in one
     step where that converges, else in substeps from `v_from` towards `v`, each
     warm-started from the last converged one and `SHRINK` times shorter after a failure
     (a prescribed rotation in substeps of at most `MAX_ROTATION_STEP`), until `v` is
-    reached, `SHRINKS` failures (one where not `retry`) or `CONTINUATION_TRIES` solves.  Returns `(sol, warm
-    start, controls)`: the solution at `v` (its `num_steps` those of all the solves; where
-    `v` was not reached, the result of the last failed solve), and the last converged
+    reached, `SHRINKS` failures (one where not `retry`) or `CONTINUATION_TRIES` solves
+    more than the rotation's substeps (at most `MAX_ROTATION_SUBSTEPS`).  Returns `(sol, warm start, controls)`: the solution
+    at `v` (its `num_steps` those of all the solves; where `v` was not reached, the result
+    of the last failed solve, or `max_steps_reached` where none failed), and the last converged
     state and its controls (the next point's start).  One `solve` in a `while_loop`: a
     point that converges at once costs one solve, and the program holds one solve, not
     one per try."""
     turn = jnp.where(kind == LOADED, 0.0, jnp.abs(v[3] - v_from[3]))
     first = jnp.where(turn > MAX_ROTATION_STEP, MAX_ROTATION_STEP / jnp.maximum(turn, MAX_ROTATION_STEP), 1.0)
     shortest = first * jnp.where(retry, SHRINK**SHRINKS, 1.0)
+    most = CONTINUATION_TRIES + jnp.minimum(jnp.ceil(1 / first), MAX_ROTATION_SUBSTEPS).astype(jnp.int32)
 
     def solved_at(t, guess):
         end = axial_end_condition(rod, length, kind, v_from + t * (v - v_from))
@@ -278,7 +284,7 @@ def _solve_from(rod, length, kind, start, v_from, v, guess, retry, options: Boun
 
     def unfinished(state):
         _, done, step, tries, *_ = state
-        return (done < 1) & (step > 0.5 * shortest) & (tries < CONTINUATION_TRIES)
+        return (done < 1) & (step > 0.5 * shortest) & (tries < most)
 
     def attempt(state):
         guess, done, step, tries, steps, failure, _ = state
@@ -293,7 +299,7 @@ def _solve_from(rod, length, kind, start, v_from, v, guess, retry, options: Boun
     # The loop carries a solution: its shapes, without another solve in the program.
     blank = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(solved_at, 1.0, guess))
     zero = jnp.zeros((), v.dtype)
-    state = (guess, zero, first.astype(v.dtype), jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), RESULTS.successful, blank)
+    state = (guess, zero, first.astype(v.dtype), jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), RESULTS.max_steps_reached, blank)
     guess, done, _, _, steps, failure, sol = jax.lax.while_loop(unfinished, attempt, state)
     result = RESULTS.where(done >= 1, sol.result, failure)
     # (Not v_from + done (v - v_from) where nothing converged: a NaN control would spoil it.)

@@ -7,8 +7,8 @@ extension against turns) or at fixed extension (a spring twisted between grips),
 general any sequence of control pairs (`axial_response`).  Each point is one boundary-value
 solve; by default the points are solved in order, each warm-started from the previous one
 (continuation), inside one compiled `lax.scan` -- a step that does not converge at once, or
-turns a prescribed end rotation by more than 1.5 rad, in substeps (`_solve_from`); `mode="independent"` solves them in parallel
-(`vmap`), each from the bulk-helix guess -- fine where that guess is good (a load through the
+turns a prescribed end rotation by more than 1.5 rad, in substeps (`_solve_from`);
+`mode="independent"` solves them in parallel (`vmap`), each from the bulk-helix guess -- fine where that guess is good (a load through the
 axis is an initial-value problem and needs no continuation).
 
 Observables (`AXIAL_OBSERVABLES`): axial force $F = N\\cdot e_z$, axial moment $M$ (about the
@@ -267,10 +267,11 @@ def _solve_from(rod, length, kind, start, v_from, v, guess, retry, options: Boun
     warm-started from the last converged one and `SHRINK` times shorter after a failure
     (a prescribed rotation in substeps of at most `MAX_ROTATION_STEP`), until `v` is
     reached, `SHRINKS` failures (one where not `retry`) or `CONTINUATION_TRIES` solves
-    more than the rotation's substeps (at most `MAX_ROTATION_SUBSTEPS`).  Returns `(sol, warm start, controls)`: the solution
-    at `v` (its `num_steps` those of all the solves; where `v` was not reached, the result
-    of the last failed solve, or `max_steps_reached` where none failed), and the last converged
-    state and its controls (the next point's start).  One `solve` in a `while_loop`: a
+    more than the rotation's substeps (at most `MAX_ROTATION_SUBSTEPS`).  Returns `(sol,
+    warm start, controls)`: the solution at `v` (its `num_steps` those of all the solves;
+    where `v` was not reached, the result of the last failed solve, or `max_steps_reached`
+    where none failed), and the last converged state and its controls (the next point's
+    start).  One `solve` in a `while_loop`: a
     point that converges at once costs one solve, and the program holds one solve, not
     one per try."""
     turn = jnp.where(kind == LOADED, 0.0, jnp.abs(v[3] - v_from[3]))
@@ -643,6 +644,9 @@ CRITICAL_BISECTIONS = 40
 #: another reason leaves it where it was.
 FOLD_MARGIN = 1e-2
 
+#: The most stable -> failed steps of a curve examined for a fold (each costs a bisection).
+FOLD_CANDIDATES = 3
+
 
 def _first_loss_of_stability(rod, length, kind, values, swept, sols, options):
     """(critical value of the swept control, kind) of the first loss of stability of a
@@ -660,7 +664,10 @@ def _first_loss_of_stability(rod, length, kind, values, swept, sols, options):
     start = unloaded_clamp(rod)
     take = lambda j: jax.tree.map(lambda a: a[j], sols)  # noqa: E731
     distance = lambda s, t: float(jnp.linalg.norm(jnp.concatenate([s.force - t.force, s.moment0 - t.moment0])))  # noqa: E731
-    for i in np.flatnonzero(stable[:-1] & (unstable[1:] | failed[1:])):
+    candidates = np.flatnonzero(stable[:-1] & (unstable[1:] | failed[1:]))
+    # Every stable -> unstable step, and the first few stable -> failed ones.
+    candidates = candidates[~failed[candidates + 1] | (np.cumsum(failed[candidates + 1]) <= FOLD_CANDIDATES)]
+    for i in candidates:
         good, bad = take(i), take(i + 1)
         a, b = values[i], values[i + 1]
         first = distance(good, bad)

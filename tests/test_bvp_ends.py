@@ -84,6 +84,14 @@ def test_each_kind_in_the_uniform_form():
     assert int(about_point.kind) == 1 and not bool(about_point.about_end)
     np.testing.assert_array_equal(about_point.point, P)
     np.testing.assert_allclose(about_point.residual(x, other, F, m_end, scales), 0.0, atol=1e-14)
+    # A hook attached to the end (director components r): the force acts at x + D r, so the
+    # moment about the end is (D r) x F plus the applied one, in any frame D.
+    r = jnp.asarray(rng.normal(size=3))
+    hooked = hr.Loaded(F, m_end, hook=r).condition()
+    assert int(hooked.kind) == 1 and bool(hooked.about_end)
+    np.testing.assert_array_equal(hooked.hook, r)
+    np.testing.assert_allclose(hooked.residual(x, other, F, m_end + jnp.cross(other @ r, F), scales), 0.0, atol=1e-14)
+    assert float(jnp.abs(hooked.residual(x, R, F, m_end + jnp.cross(other @ r, F), scales)).max()) > 1e-3
     tweezer = hr.Tweezer(R, F).condition()
     assert int(tweezer.kind) == 2
     np.testing.assert_array_equal(tweezer.moment, np.zeros(3))
@@ -95,7 +103,7 @@ def test_each_kind_in_the_uniform_form():
     np.testing.assert_allclose(r, [0, 0, 1.0, 0, 0, 0], atol=1e-15)
     assert tweezer.condition() is tweezer  # the uniform form is its own condition
     # Built from its leaves (`end_condition`, no initialiser): the Module its initialiser builds.
-    for cond in (clamped, about_end, about_point, tweezer):
+    for cond in (clamped, about_end, about_point, hooked, tweezer):
         rebuilt = hr.EndCondition(*(getattr(cond, f.name) for f in dataclasses.fields(cond)))
         assert jax.tree.structure(rebuilt) == jax.tree.structure(cond)
         tree_allclose(rebuilt, cond, rtol=0, atol=0)
@@ -121,6 +129,10 @@ def test_bad_end_conditions_raise_clear_errors():
         hr.Clamped((0.0, 0.0))
     with pytest.raises(ValueError, match="force must be finite"):
         hr.Loaded((jnp.inf, 0.0, 0.0))
+    with pytest.raises(ValueError, match="not both"):
+        hr.Loaded((0.0, 0.0, 1.0), point=(0.0, 0.0, 0.0), hook=(1.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="hook must be finite"):
+        hr.Loaded((0.0, 0.0, 1.0), hook=(jnp.nan, 0.0, 0.0))
     with pytest.raises(ValueError, match="frame must be a rotation"):
         hr.Tweezer(-jnp.eye(3), (0.0, 0.0, 1.0))
     with pytest.raises(ValueError, match="one of the pairs"):

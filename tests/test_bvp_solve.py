@@ -205,6 +205,27 @@ def test_other_whole_turns_are_flagged_under_jit_and_vmap():
     np.testing.assert_allclose(both.force[1], twisted.force, atol=1e-9)
 
 
+
+def test_a_hooked_end_is_held_by_the_line_through_its_hook():
+    """A force acting at a hook rigidly attached to the end (`Loaded(hook=)`: the spring's
+    unloaded end to its axis) holds the rod in the state whose force line passes through
+    the hook's place there: the fixed-line condition through that point solves to the same
+    state (to 1e-9).  Along a load the two differ: the hook leaves the axis (0.12 at F = 0.05
+    on 2 turns) and the extension of the fixed-line spring is 1 % shorter."""
+    length = 2 * TURN
+    x0, frame0 = hr.unloaded_state(SPRING, jnp.asarray(length))
+    hook = frame0.T @ jnp.array([-x0[0], -x0[1], 0.0])
+    hooked = hr.solve_boundary_value(SPRING, length, end=hr.Loaded(force=(0.0, 0.0, 0.05), hook=hook), segments=4)
+    place = hooked.end_position + hooked.end_frame @ hook
+    held = hr.solve_boundary_value(SPRING, length, end=hr.Loaded(force=(0.0, 0.0, 0.05), point=place), segments=4)
+    np.testing.assert_allclose(held.end_position, hooked.end_position, atol=1e-9)
+    np.testing.assert_allclose(held.end_frame, hooked.end_frame, atol=1e-9)
+    np.testing.assert_allclose(held.moment0, hooked.moment0, atol=1e-9)
+    assert int(hooked.instability_index) == int(held.instability_index) == 0
+    on_axis = hr.solve_boundary_value(SPRING, length, end=hr.Loaded(force=(0.0, 0.0, 0.05), point=(0.0, 0.0, 0.0)), segments=4)
+    assert float(jnp.linalg.norm(place[:2])) > 0.1
+    assert 0.005 < float(1 - on_axis.end_position[2] / hooked.end_position[2]) < 0.02
+
 def test_the_end_rotation_is_the_twist_and_fuller_writhe_integrals():
     """A solution's `rotation` against the integrals it sums (`_rotation.py`): along the
     rod integrated again from its start wrench (`solve_static`, 4001 points, trapezoids),

@@ -59,6 +59,21 @@ def test_euler_clamped_free():
 
 
 @pytest.mark.heavy
+def test_column_with_a_rigid_extension():
+    """A cantilever whose compressive dead load acts at the tip of a rigid bar of length a
+    continuing its end (`Loaded(hook=(0, 0, a))`).  Its buckled deflection is
+    w = w_tip (1 - cos ks), k^2 = P/B, and the tip's w(L) + a w'(L) = w_tip gives
+    tan(kL) = 1/(ka) (a = 0: Euler's pi^2/4); for a = 0.5, kL tan(kL) = 2."""
+    rod = helixrod.Rod(1.0, 1.0, 0.8)
+    a = 0.5
+    k = scipy.optimize.brentq(lambda k: a * k * np.tan(k * L) - 1.0, 1e-6, np.pi / (2 * L) - 1e-9)
+    p_c = k**2
+    load = lambda P: helixrod.Loaded(force=(0.0, 0.0, -P), hook=(0.0, 0.0, a))  # noqa: E731
+    assert critical(lambda P: margin(rod, load(P)), 0.5 * p_c, 1.5 * p_c) == pytest.approx(p_c, rel=1e-6)  # measured 1e-8
+    assert p_c < 0.5 * np.pi**2 / 4  # the bar halves the load
+
+
+@pytest.mark.heavy
 def test_buckled_cantilever_by_default():
     """Above the Euler load the straight state is unstable; the default solve pushes along
     its unstable direction onto the buckled elastica: with $k = \\sin(\\alpha/2)$ of the tip

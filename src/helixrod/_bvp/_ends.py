@@ -6,7 +6,9 @@ The rod is clamped at $s = 0$; the condition at $s = L$ is six scalar equations:
 - `Clamped(position, frame)`: $x(L) = P$, $D(L) = R$;
 - `Loaded(force, moment, point)`: the lab force $N = F$ and the moment about `point` (a
   fixed lab point; the end $x(L)$ itself when `point` is `None`) -- with a fixed point the
-  moment about it is conserved, so this is an initial-value problem in disguise;
+  moment about it is conserved, so this is an initial-value problem in disguise; or
+  `Loaded(force, moment, hook=r)`: the force acting at the point $x(L) + D(L)r$ rigidly
+  attached to the end (a spring's hook, a bead's centre), $m(L) = (D(L)r)\\times F + M$;
 - `Tweezer(frame, force)`: $D(L) = R$ and $N = F$, the end position free (a magnetic bead:
   the magnet fixes the bead's orientation and pulls with a known force).
 
@@ -87,8 +89,10 @@ class AbstractEnd(eqx.Module):
 class EndCondition(AbstractEnd):
     """Any end condition in one traced form: `kind` (0 clamped, 1 loaded, 2 tweezer) and
     the data of every kind -- `position` `(3,)`, `frame` `(3, 3)`, `force` `(3,)`, `moment`
-    `(3,)`, `point` `(3,)` and `about_end` (the moment of a `Loaded` end is about the end
-    itself); fields a kind does not use are zero (identity frame); `rotation`: the end's
+    `(3,)`, `point` `(3,)`, `hook` `(3,)` (director components) and `about_end` (the force
+    of a `Loaded` end acts at the point `hook` rigidly attached to the end, the end itself
+    for zero, and its moment is about the end; else its line passes through the fixed
+    `point`); fields a kind does not use are zero (identity frame); `rotation`: the end's
     total rotation $\\Theta$ about the axis of the canonical placement, whole turns included,
     where it is known (`axial_ends`, the response curves; NaN elsewhere): the frame holds it
     only up to whole turns, and the default guess turns the rod by as much.  Built by
@@ -101,6 +105,7 @@ class EndCondition(AbstractEnd):
     force: Float[Array, "3"]
     moment: Float[Array, "3"]
     point: Float[Array, "3"]
+    hook: Float[Array, "3"]
     about_end: Bool[Array, ""]
     rotation: Float[Array, ""]
 
@@ -110,7 +115,7 @@ class EndCondition(AbstractEnd):
     def residual(self, x, frame, force, moment, scales):
         """Scaled residual `(6,)` of the lab end state (position, frame, force, moment)."""
         ell, f_scale, m_scale = scales[0], scales[1], scales[2]
-        point = jnp.where(self.about_end, x, self.point)
+        point = jnp.where(self.about_end, x + frame @ self.hook, self.point)
         r_position = (x - self.position) / ell
         r_frame = gibbs(self.frame.T @ frame)
         r_force = (force - self.force) / f_scale
@@ -143,11 +148,11 @@ class EndCondition(AbstractEnd):
 
     def finite(self) -> Bool[Array, ""]:
         """Whether every value of the condition is finite (`rotation`, a hint, may be NaN)."""
-        leaves = (self.position, self.frame, self.force, self.moment, self.point)
+        leaves = (self.position, self.frame, self.force, self.moment, self.point, self.hook)
         return jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in leaves]))
 
 
-def end_condition(kind, position=None, frame=None, force=None, moment=None, point=None, rotation=None) -> EndCondition:
+def end_condition(kind, position=None, frame=None, force=None, moment=None, point=None, rotation=None, hook=None) -> EndCondition:
     """An `EndCondition` of a (concrete) `kind` with zeros for the fields it does not use
     (`rotation`: NaN, not known)."""
     # NumPy constants: no eager JAX dispatch per solve (they are traced like JAX arrays).
@@ -160,6 +165,7 @@ def end_condition(kind, position=None, frame=None, force=None, moment=None, poin
         zero if force is None else force,
         zero if moment is None else moment,
         zero if point is None else point,
+        zero if hook is None else hook,
         np.asarray(point is None and kind == LOADED),
         np.asarray(np.nan, dtype) if rotation is None else rotation,
     )
@@ -170,9 +176,9 @@ def end_condition(kind, position=None, frame=None, force=None, moment=None, poin
 
 @functools.cache
 def _condition_structure():
-    """The pytree structure of an `EndCondition` (its eight fields are its leaves)."""
+    """The pytree structure of an `EndCondition` (its nine fields are its leaves)."""
     zero = np.zeros(3)
-    return jax.tree.structure(EndCondition(np.int32(0), zero, np.eye(3), zero, zero, zero, np.bool_(False), np.float64(np.nan)))
+    return jax.tree.structure(EndCondition(np.int32(0), zero, np.eye(3), zero, zero, zero, zero, np.bool_(False), np.float64(np.nan)))
 
 
 class Clamped(AbstractEnd):
@@ -210,24 +216,37 @@ def as_start(start: Clamped) -> Clamped:
 
 
 class Loaded(AbstractEnd):
-    """Prescribed end load (dead load): `Loaded(force, moment, point=None)`.
+    """Prescribed end load (dead load): `Loaded(force, moment, point=None, *, hook=None)`.
 
     `force` `(3,)`: the lab force $n(L)$ applied to the end; `moment` `(3,)`: the applied
-    moment about `point` (a fixed lab point, e.g. on a spring's axis), or about the end
-    $x(L)$ itself when `point` is `None` (then it is $m(L)$ in lab components).
+    moment about `point` (a fixed lab point, e.g. on a spring's axis: the force's line is
+    held through it), or about the end $x(L)$ itself when `point` is `None` (then it is
+    $m(L)$ in lab components).  `hook` `(3,)` (instead of `point`): the force acts at the
+    point $x(L) + D(L)r$ ($r$ = `hook`) rigidly attached to the end, $r$ in the end's
+    director components (a spring's hook, a bead's centre), so that $m(L) = (D(L)r)\\times F
+    + M$ ($M$ = `moment`): a conservative load (with `moment` zero) whose stability is the one the
+    stability test computes (with `point`, each state is tested as held by a rigid hook of
+    its own geometry).
     """
 
     force: Float[Array, "3"]
     moment: Float[Array, "3"]
     point: Float[Array, "3"] | None
+    hook: Float[Array, "3"] | None
 
-    def __init__(self, force: ArrayLike = (0.0, 0.0, 0.0), moment: ArrayLike = (0.0, 0.0, 0.0), point: ArrayLike | None = None):
+    def __init__(
+        self, force: ArrayLike = (0.0, 0.0, 0.0), moment: ArrayLike = (0.0, 0.0, 0.0), point: ArrayLike | None = None, *,
+        hook: ArrayLike | None = None,
+    ):
         self.force = finite_array(force, "force", "Loaded", (3,))
         self.moment = finite_array(moment, "moment", "Loaded", (3,))
+        if point is not None and hook is not None:
+            raise ValueError("Loaded: give point= (a fixed line of the force) or hook= (a point attached to the end), not both")
         self.point = None if point is None else finite_array(point, "point", "Loaded", (3,))
+        self.hook = None if hook is None else finite_array(hook, "hook", "Loaded", (3,))
 
     def condition(self) -> EndCondition:
-        return end_condition(LOADED, force=self.force, moment=self.moment, point=self.point)
+        return end_condition(LOADED, force=self.force, moment=self.moment, point=self.point, hook=self.hook)
 
 
 class Tweezer(AbstractEnd):
@@ -330,6 +349,7 @@ def axial_end_condition(rod, length, kind, values) -> EndCondition:
         force=force * e3,
         moment=moment * e3,
         point=jnp.zeros(3, dtype),
+        hook=jnp.zeros(3, dtype),
         about_end=jnp.asarray(False),
         rotation=jnp.where(loaded, jnp.nan, rotation),
     )

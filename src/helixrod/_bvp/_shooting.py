@@ -452,9 +452,9 @@ def _axial_guess(rod, length, start, end: EndCondition, guess_kind: str, bulk=No
     x_free, frame_free = unloaded_state(rod, length)
     x_free, frame_free = R_g @ x_free + x_g, R_g @ frame_free
     loaded, tweezer = end.kind == LOADED, end.kind == TWEEZER
-    # Loaded: exact wrench (moment about a fixed point is conserved; about the end, the
-    # unloaded end is the lever arm).
-    point = jnp.where(end.about_end, x_free, end.point)
+    # Loaded: exact wrench (moment about a fixed point is conserved; at the end or a hook
+    # attached to it, the unloaded end's is the lever arm).
+    point = jnp.where(end.about_end, x_free + frame_free @ end.hook, end.point)
     loaded_m0 = end.moment - jnp.cross(start.position - point, end.force)
     wrapped = twist_angle(R_g.T @ end.frame @ frame_free.T @ R_g)
     twist = jnp.where(loaded, 0.0, jnp.where(jnp.isfinite(end.rotation), end.rotation - theta0, wrapped))

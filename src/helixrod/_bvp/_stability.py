@@ -36,9 +36,10 @@ cancels at an equilibrium, and the symmetric part is used.
 
 End conditions (every one conservative): `Clamped` -- the last node is fixed; `Tweezer` -- its
 position is free, its frame fixed, the dead force contributes $-F\\cdot x_p$ (no Hessian);
-`Loaded` -- both free, the dead force acting at a point rigidly attached to the end (`point`,
-where the load's line passes; the end itself for `point=None`), potential
-$-F\\cdot(x_p + D_p r)$, and **no applied moment**: a dead moment is not conservative on
+`Loaded` -- both free, the dead force acting at a point $x_p + D_p r$ rigidly attached to the
+end (its `hook`; for a fixed `point`, where the load's line passes closest to the end in
+this state; the end itself for neither), potential $-F\\cdot(x_p + D_p r)$, and **no applied
+moment**: a dead moment is not conservative on
 $SO(3)$, so the stability of an end loaded by a moment is not defined here (index $-1$,
 margin NaN).
 
@@ -121,10 +122,11 @@ def piece_hessian(T) -> Float[Array, "12 12"]:
     return jnp.block([[B_inv @ A, -B_inv], [C - D @ B_inv @ A, D @ B_inv]])
 
 
-def second_variation(rod, length, end: EndCondition, N, end_position, transfers):
+def second_variation(rod, length, end: EndCondition, N, end_position, transfers, end_frame=None):
     """The rod's Hessian in its free node variations, assembled from the pieces' `(p, 12,
-    12)` transfer matrices, with the load's; scaled to the dimensionless form of the module
-    docstring and symmetrised.  `(6p, 6p)`; the fixed slots of the last node are decoupled
+    12)` transfer matrices, with the load's (`end_frame`: the end's, where a `Loaded` end's
+    hook needs it); scaled to the dimensionless form of the module docstring and
+    symmetrised.  `(6p, 6p)`; the fixed slots of the last node are decoupled
     with a large diagonal (their eigenvalues lie far above the soft ones).  Also returns
     the mask of free slots."""
     p = transfers.shape[0]
@@ -141,7 +143,8 @@ def second_variation(rod, length, end: EndCondition, N, end_position, transfers)
     # where its line of action (through `point`) passes closest to the end.
     to_point = end.point - end_position
     direction = end.force / jnp.where(jnp.any(end.force != 0), jnp.linalg.norm(end.force), 1.0)
-    r = jnp.where(end.about_end, 0.0, to_point - (to_point @ direction) * direction)
+    hook = (jnp.eye(3, dtype=N.dtype) if end_frame is None else end_frame) @ end.hook
+    r = jnp.where(end.about_end, hook, to_point - (to_point @ direction) * direction)
     H = H.at[-3:, -3:].add(jnp.where(end.kind == LOADED, -hat(end.force) @ hat(r), 0.0))
     H = H[6:, 6:]  # the start node is clamped
     free_x = (end.kind == TWEEZER) | (end.kind == LOADED)
@@ -183,7 +186,7 @@ def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: Bounda
         steps = variation_steps(rod, local[:3], local[3:], h, options.max_ode_steps)
         piece = piece_variations(rod, local[:3], local[3:], h, steps, frame)
         end_node = (x + frame @ piece.position, frame @ piece.frame)
-        return end_node, (frame, moment, piece, jnp.linalg.norm(local[3:]), end_node[0])
+        return end_node, (frame, moment, piece, jnp.linalg.norm(local[3:]), end_node)
 
     _, (starts, moments, pieces, start_moments, ends) = per_piece(
         lambda i: jax.lax.scan(sub_piece, (xs[i], frames[i]), None, length=q), jnp.arange(k)
@@ -193,16 +196,17 @@ def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: Bounda
     starts, moments, pieces = flat(starts), flat(moments), jax.tree.map(flat, pieces)
     transfers = jax.vmap(lambda frame, moment, piece: piece_transfer(frame, N, moment, piece, compliance))(starts, moments, pieces)
     largest_moment = jnp.maximum(jnp.max(start_moments), jnp.max(jnp.linalg.norm(pieces.moment, axis=-1)))
-    return (*assess(rod, length, end, N, transfers, ends[-1, -1], largest_moment), counted_rotation(pieces.rotation))
+    end_position, end_frame = ends[0][-1, -1], ends[1][-1, -1]
+    return (*assess(rod, length, end, N, transfers, end_position, largest_moment, end_frame), counted_rotation(pieces.rotation))
 
 
-def assess(rod, length, end: EndCondition, N, transfers, end_position, largest_moment):
+def assess(rod, length, end: EndCondition, N, transfers, end_position, largest_moment, end_frame=None):
     """(instability_index, stability_margin, unstable_direction) from the pieces' transfer
     matrices `(p, 12, 12)` (as `stability`); `largest_moment`: the largest moment along the
-    rod (whether the pieces resolve the wrench)."""
+    rod (whether the pieces resolve the wrench); `end_frame` as `second_variation`."""
     p = transfers.shape[0]
     h = length / p
-    H, free = second_variation(rod, length, end, N, end_position, transfers)
+    H, free = second_variation(rod, length, end, N, end_position, transfers, end_frame)
     defined_H = jnp.all(jnp.isfinite(H))
     # Only the bottom of the spectrum is needed: the count below the neutral band, the
     # lowest eigenvalue and, where unstable, its vector (NaN-free input: a failed

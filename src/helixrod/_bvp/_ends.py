@@ -223,10 +223,10 @@ class Loaded(AbstractEnd):
     held through it), or about the end $x(L)$ itself when `point` is `None` (then it is
     $m(L)$ in lab components).  `hook` `(3,)` (instead of `point`): the force acts at the
     point $x(L) + D(L)r$ ($r$ = `hook`) rigidly attached to the end, $r$ in the end's
-    director components (a spring's hook, a bead's centre), so that $m(L) = (D(L)r)\\times F
-    + M$ ($M$ = `moment`): a conservative load (with `moment` zero) whose stability is the one the
-    stability test computes (with `point`, each state is tested as held by a rigid hook of
-    its own geometry).
+    director components (a spring's hook, a bead's centre), so that $m(L) = (D(L)r)\\times
+    F + M$ ($M$ = `moment`): a conservative load (with `moment` zero) whose stability is the
+    one the stability test computes (with `point`, each state is tested as held by a rigid
+    hook of its own geometry).
     """
 
     force: Float[Array, "3"]

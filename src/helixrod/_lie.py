@@ -125,9 +125,10 @@ def twist_angle(R: Array) -> Array:
     return jnp.arctan2(jnp.sum(d1 * jnp.cross(t, swung), -1), jnp.sum(d1 * swung, -1))
 
 
-def unwrap_near(angle: ArrayLike, hint: ArrayLike) -> Array:
-    """`angle + 2 pi k` with the integer `k` that brings it nearest to `hint`."""
-    return angle + 2.0 * jnp.pi * jnp.round((hint - angle) / (2.0 * jnp.pi))
+def unwrap_near(angle: ArrayLike, hint: ArrayLike, xp=jnp) -> Array:
+    """`angle + 2 pi k` with the integer `k` that brings it nearest to `hint`, in the array
+    namespace `xp` (`numpy` for host values: eager `jnp.round` compiles a program)."""
+    return angle + 2.0 * np.pi * xp.round((hint - angle) / (2.0 * np.pi))
 
 
 def se3_exp(w: Float[Array, "3"], v: Float[Array, "3"]) -> tuple[Array, Array]:

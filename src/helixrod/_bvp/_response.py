@@ -8,8 +8,9 @@ general any sequence of control pairs (`axial_response`).  Each point is one bou
 solve; by default the points are solved in order, each warm-started from the previous one
 (continuation), inside one compiled `lax.scan` -- a step that does not converge at once, or
 turns a prescribed end rotation by more than 1.5 rad, in substeps (`_solve_from`);
-`mode="independent"` solves them in parallel (`vmap`), each from the bulk-helix guess -- fine where that guess is good (a load through the
-axis is an initial-value problem and needs no continuation).
+`mode="independent"` solves them in parallel (`vmap`), each from the bulk-helix guess --
+fine where that guess is good (a load through the axis is an initial-value problem and
+needs no continuation).
 
 Observables (`AXIAL_OBSERVABLES`): axial force $F = N\\cdot e_z$, axial moment $M$ (about the
 axis), extension $h = (x(L) - x(0))\\cdot e_z$, end rotation $\\Theta$: the unloaded
@@ -271,9 +272,8 @@ def _solve_from(rod, length, kind, start, v_from, v, guess, retry, options: Boun
     warm start, controls)`: the solution at `v` (its `num_steps` those of all the solves;
     where `v` was not reached, the result of the last failed solve, or `max_steps_reached`
     where none failed), and the last converged state and its controls (the next point's
-    start).  One `solve` in a `while_loop`: a
-    point that converges at once costs one solve, and the program holds one solve, not
-    one per try."""
+    start).  One `solve` in a `while_loop`: a point that converges at once costs one solve,
+    and the program holds one solve, not one per try."""
     turn = jnp.where(kind == LOADED, 0.0, jnp.abs(v[3] - v_from[3]))
     first = jnp.where(turn > MAX_ROTATION_STEP, MAX_ROTATION_STEP / jnp.maximum(turn, MAX_ROTATION_STEP), 1.0)
     shortest = first * jnp.where(retry, SHRINK**SHRINKS, 1.0)
@@ -408,8 +408,7 @@ def _turns_counted(kind, values, obs: tuple, sols: BoundaryValueSolution, concre
     xp = np if concrete else jnp
     rotation, observed = xp.asarray(sols.rotation), xp.asarray(obs[3])
     counted, loaded = xp.isfinite(rotation), xp.asarray(kind) == LOADED
-    # `_lie.unwrap_near`, in the namespace of the curve (its jnp.round would compile a program).
-    nearest = observed + 2.0 * np.pi * xp.round((rotation - observed) / (2.0 * np.pi))
+    nearest = unwrap_near(observed, rotation, xp)
     obs = (*obs[:3], jnp.asarray(xp.where(counted & loaded, nearest, observed)))
     other = counted & ~loaded & ~holds_turns(rotation, xp.asarray(values)[:, 3])
     if concrete and not other.any():

@@ -491,8 +491,8 @@ def solve_boundary_value(
         # Traced: flagged here (an eager call flags after its fallbacks, `_physical`).
         sol = replaced(sol, result=turns_flagged(sol.result, sol.rotation, end))
         return raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _HINT) if throw else sol
-    sol = _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind)
-    if throw and not _status(sol)[0]:
+    sol, ok = _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind)
+    if throw and not ok:
         if has_code(sol.result, RESULTS.other_whole_turns):
             held = float(sol.rotation)
             raise SolverError(
@@ -598,13 +598,6 @@ def wrench_pieces(rod, length, force, moment0, node_position, end_position) -> i
     return stability_pieces_for(rod, length, force, moments)
 
 
-def _status(sol: BoundaryValueSolution) -> tuple[bool, int]:
-    """(succeeded, instability index) of a concrete single solution, in one transfer from
-    the device (each read of a device value cost 5-13 us; an eager solve made half a dozen)."""
-    result, index = jax.device_get((sol.result, sol.instability_index))
-    return bool(succeeded(result)), int(index)
-
-
 def _moment_loaded(end: EndCondition) -> bool:
     """Whether a concrete end is loaded by a moment (whose stability is not defined)."""
     kind, moment = jax.device_get((end.kind, end.moment))
@@ -637,7 +630,7 @@ def resolved_stability(rod, length, end: EndCondition, sol: BoundaryValueSolutio
     return sol if pieces == options.stability_pieces else with_stability(sol, tested, pieces)
 
 
-def _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind) -> BoundaryValueSolution:
+def _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind) -> tuple[BoundaryValueSolution, bool]:
     """The eager defaults that make a solve land on the physical state: more stability
     pieces where the test does not resolve the wrench, and, from the default guess, when
     the direct solve converges to an unstable equilibrium, a solve pushed to either side
@@ -647,33 +640,50 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
     (`FALLBACK_CONTINUATION`).  Where the end knows its total rotation (`rotation`, e.g.
     from `axial_ends`), a state is accepted only if it holds those whole turns (its
     `rotation`, as the stability test counts it); a converged solution that does not is
-    returned with result `other_whole_turns`."""
-    asked = np.asarray(jax.device_get(end.rotation))
+    returned with result `other_whole_turns`.  Returns the solution and whether it
+    succeeded."""
+    asked = None
 
-    def turns_held(trial) -> bool:
-        return not np.isfinite(asked) or bool(holds_turns(np.asarray(jax.device_get(trial.rotation)), asked))
+    def verdict(trial) -> tuple[bool, int, bool]:
+        """(succeeded, instability index, holds the asked whole turns) of a solution, its
+        test resolved, in one transfer from the device for the common case (each read cost
+        5-20 us; the checks of an eager call made seven)."""
+        nonlocal asked
+        wanted = end.rotation if asked is None else 0.0
+        result, index, rotation, wanted = jax.device_get((trial.result, trial.instability_index, trial.rotation, wanted))
+        asked = np.asarray(wanted) if asked is None else asked
+        ok = bool(succeeded(result))
+        held = not np.isfinite(asked) or bool(holds_turns(np.asarray(rotation), asked))
+        return ok, int(index), held
 
-    def flagged(chosen):
-        if _status(chosen)[0] and not turns_held(chosen):
-            return replaced(chosen, result=RESULTS.other_whole_turns)
-        return chosen
+    def resolved(trial):
+        """`trial` with its stability resolved (`resolved_stability`: only where it
+        converged and its test did not resolve the wrench) and its verdict."""
+        judged = verdict(trial)
+        if judged[0] and judged[1] < 0:
+            trial = resolved_stability(rod, length, end, trial, options)
+            judged = verdict(trial)
+        return trial, judged
+
+    def flagged(chosen, judged):
+        if judged[0] and not judged[2]:
+            return replaced(chosen, result=RESULTS.other_whole_turns), False
+        return chosen, judged[0]
 
     def solved(guess, options):
-        return resolved_stability(rod, length, end, solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind), options)
+        return resolved(solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind))
 
-    sol = resolved_stability(rod, length, end, sol, options)
+    def acceptable(judged) -> bool:
+        ok, index, held = judged
+        return ok and index <= 0 and held
 
-    def acceptable(trial) -> bool:
-        ok, index = _status(trial)
-        return ok and index <= 0 and turns_held(trial)
-
-    def settled(trial):
+    def settled(trial, judged):
         """`trial`, or where it converged to an unstable state, a solve pushed from it to
         either side along its most unstable direction, by two sizes; None if neither is
         acceptable."""
-        if acceptable(trial):
-            return trial
-        if not _status(trial)[0]:
+        if acceptable(judged):
+            return trial, judged
+        if not judged[0]:
             return None
         # In NumPy: JAX would compile each of these operations eagerly (~0.1 s).
         frame, push = np.asarray(start.frame), np.asarray(trial.unstable_direction)
@@ -687,30 +697,31 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
                 WarmStart(N.astype(dtype), M0.astype(dtype), trial.node_position, trial.node_frame)
                 if options.segments == 1 else (frame.T @ N, frame.T @ M0)
             )
-            pushed = solved(guess, options)
-            if acceptable(pushed):
-                return pushed
+            pushed, pushed_judged = solved(guess, options)
+            if acceptable(pushed_judged):
+                return pushed, pushed_judged
         return None
 
-    if not default_guess or options.continuation > 0 or acceptable(sol):
-        return flagged(sol)
-    found = settled(sol)
+    sol, judged = resolved(sol)
+    if not default_guess or options.continuation > 0 or acceptable(judged):
+        return flagged(sol, judged)
+    found = settled(sol, judged)
     if found is not None:
-        return found
+        return flagged(*found)
     bending = float(_bending_stiffness(rod))
     straight = not np.any(np.asarray(rod.uhat)[:2] != 0)
     buckled = buckled_guess(rod, length, start, end, bending) if straight and int(end.kind) == CLAMPED else None
     if buckled is not None:
-        found = settled(solved(buckled, options))
+        found = settled(*solved(buckled, options))
         if found is not None:
-            return found
+            return flagged(*found)
     for steps in FALLBACK_CONTINUATION:
         homotopy = dataclasses.replace(options, continuation=steps)
-        trial = solved(None, homotopy)
+        trial, trial_judged = solved(None, homotopy)
         # A converged state before a failed one; the asked whole turns before other ones.
-        better = _status(trial)[0] and (not _status(sol)[0] or (turns_held(trial) and not turns_held(sol)))
-        if acceptable(trial) or better:
-            sol = trial
-        if acceptable(sol):
+        better = trial_judged[0] and (not judged[0] or (trial_judged[2] and not judged[2]))
+        if acceptable(trial_judged) or better:
+            sol, judged = trial, trial_judged
+        if acceptable(judged):
             break
-    return flagged(sol)
+    return flagged(sol, judged)

@@ -396,3 +396,15 @@ def test_replaced_is_dataclasses_replace_without_init():
     for u, v in zip(jax.tree.leaves(new), jax.tree.leaves(expected)):
         np.testing.assert_array_equal(u, v)
     assert pair.label == 1 and np.all(np.asarray(pair.b) == 1.0)  # the original is untouched
+
+
+def test_tree_where_chooses_whole_trees_per_condition():
+    new, old = (jnp.arange(3.0), {"m": jnp.eye(2)}), (jnp.zeros(3), {"m": jnp.zeros((2, 2))})
+    for flag, expected in ((True, new), (False, old)):
+        for u, v in zip(jax.tree.leaves(_misc.tree_where(flag, new, old)), jax.tree.leaves(expected)):
+            np.testing.assert_array_equal(u, v)
+    # Traced and batched: each point of a batch chooses its own tree.
+    flags = jnp.array([True, False])
+    batched = jax.vmap(lambda f: _misc.tree_where(f, new, old))(flags)
+    np.testing.assert_array_equal(batched[0], np.stack([np.arange(3.0), np.zeros(3)]))
+    np.testing.assert_array_equal(batched[1]["m"], np.stack([np.eye(2), np.zeros((2, 2))]))

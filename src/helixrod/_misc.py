@@ -62,6 +62,12 @@ def replaced(module, **changes):
     return new
 
 
+def tree_where(condition, on_true, on_false):
+    """`jnp.where(condition, a, b)` leaf by leaf of two pytrees of one structure (a scalar
+    `condition`, traced or not, choosing between whole states)."""
+    return jax.tree.map(lambda a, b: jnp.where(condition, a, b), on_true, on_false)
+
+
 def no_gradient(tree):
     """`tree` with `stop_gradient` on its floating-point arrays (other leaves untouched)."""
     return jax.tree.map(lambda x: jax.lax.stop_gradient(x) if eqx.is_inexact_array(x) else x, tree)

@@ -37,7 +37,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._compile import committed_placement, compile_ahead, jit, leaf_shapes, once_per_signature
 from .._geometry import unloaded_observables, unloaded_state
 from .._lie import twist_angle, unwrap_near
-from .._misc import check_choice, finite_scalar, float_dtype, is_concrete, no_gradient, replaced
+from .._misc import check_choice, finite_scalar, float_dtype, is_concrete, no_gradient, replaced, tree_where
 from .._progress import ProgressArgument, ProgressReport, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import check_one_rod
 from .._status import RESULTS, raise_if_failed, set_code, succeeded
@@ -225,7 +225,7 @@ def _continuation_start(rod, length, kind, values, options: BoundaryValueOptions
     guess0 = no_gradient(default_warm_start(rod, length, start, first_end, options.segments, "helix", bulk0))
     if guess is not None:
         solved = no_gradient(solve(rod, length, start, first_end, guess, None, options, test_stability=False))
-        guess0 = jax.tree.map(lambda a, b: jnp.where(solved.ok, a, b), solved.warm_start(), guess0)
+        guess0 = tree_where(solved.ok, solved.warm_start(), guess0)
     return guess0, unloaded, jnp.where(bulk0.ok, bulk0.rotation, theta0), first, jnp.asarray(True)
 
 
@@ -293,7 +293,7 @@ def _solve_from(rod, length, kind, start, v_from, v, guess, retry, options: Boun
         t = jnp.where(done + step >= 1 - 1e-9, 1.0, done + step)
         sol = solved_at(t, guess)
         ok = sol.ok
-        guess = jax.tree.map(lambda a, b: jnp.where(ok, a, b), no_gradient(sol.warm_start()), guess)
+        guess = tree_where(ok, no_gradient(sol.warm_start()), guess)
         return (guess, jnp.where(ok, t, done), jnp.where(ok, step, SHRINK * step), tries + 1, steps + sol.num_steps,
                 RESULTS.where(ok, failure, sol.result), sol)
 
@@ -321,8 +321,7 @@ def _continuation_points(rod, length, kind, values, options: BoundaryValueOption
         bulk = bulk_helix_at(rod, length, index, v, bulk_guess)
         obs, bulk_obs = _observe(rod, length, kind, sol, bulk, v, hint)
         # A failed point does not spoil the warm start of the next one.
-        keep = lambda new, old, ok: jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, old)  # noqa: E731
-        bulk_guess = keep(no_gradient((bulk.u, bulk.mu1, bulk.mu2)), bulk_guess, bulk.ok)
+        bulk_guess = tree_where(bulk.ok, no_gradient((bulk.u, bulk.mu1, bulk.mu2)), bulk_guess)
         hint = jnp.where(sol.ok, obs[3], hint)
         return (guess, bulk_guess, hint, v_from, sol.ok), (obs, bulk_obs, sol, bulk.ok)
 

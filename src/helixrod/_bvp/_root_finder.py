@@ -12,6 +12,8 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array
 
+from .._misc import tree_where
+
 # A Broyden step that reduces |f| by less than this factor asks for a fresh Jacobian.
 SLOW_PROGRESS = 0.1
 
@@ -88,8 +90,7 @@ class LevenbergMarquardtBroyden(optx.AbstractRootFinder):
         finite = jnp.all(jnp.isfinite(jac)) & jnp.isfinite(cost)
         accept = finite & (cost < state.cost_best) if self.damped else finite
         slow = ~(cost < SLOW_PROGRESS**2 * state.cost_best)
-        pick = lambda a, b: jax.tree.map(lambda x, z: jnp.where(accept, x, z), a, b)  # noqa: E731
-        y_best, f_best, aux_best = pick((y, f, aux), (state.y_best, state.f_best, state.aux_best))
+        y_best, f_best, aux_best = tree_where(accept, (y, f, aux), (state.y_best, state.f_best, state.aux_best))
         # A linearisation belongs to its point; a secant update (also from a rejected
         # point) improves the Jacobian wherever the iteration stands.
         take = jnp.where(state.refresh, accept, finite)

@@ -35,7 +35,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._compile import compile_ahead, jit, once_per_signature
 from .._geometry import unloaded_observables
 from .._kirchhoff import wrench_growth_rate
-from .._misc import finite_scalar, float_dtype, increasing_within, is_concrete, no_gradient, replaced
+from .._misc import finite_scalar, float_dtype, increasing_within, is_concrete, no_gradient, replaced, tree_where
 from .._rod import check_one_rod
 from .._status import RESULTS, SolverError, has_code, promote, raise_if_failed, succeeded
 from ._bulk import residual_scales
@@ -296,8 +296,8 @@ def solve(
     # Invalid input (under vmap): solve a harmless problem, return NaN.
     length = jnp.where(valid, length, 1.0)
     harmless_start = unloaded_clamp(no_gradient(rod))
-    start = jax.tree.map(lambda a, b: jnp.where(valid, a, b), start, harmless_start)
-    end = jax.tree.map(lambda a, b: jnp.where(valid, a, b), end, end_condition(LOADED, point=jnp.zeros(3, dtype)))
+    start = tree_where(valid, start, harmless_start)
+    end = tree_where(valid, end, end_condition(LOADED, point=jnp.zeros(3, dtype)))
     k = options.segments
     scales = residual_scales(rod, length)
     ode_tol = ode_tolerances(options, dtype)

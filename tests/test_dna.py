@@ -103,3 +103,31 @@ def test_observables_bad_input():
     assert np.isfinite(k[0]) and np.isnan(k[1]) and np.isnan(t[1])
     g = jax.grad(lambda h: dna.helix_from_observables(h, 1.0, 1.0)[0])(0.3)
     assert np.isfinite(g)
+
+
+def test_non_physical_parameters_raise_or_give_nan():
+    kappa0, tau0, ell = dna.helix_from_bdna()
+    concrete = (
+        (lambda: dna.persistence_length(-410.0), "persistence_length: stiffness must be finite and > 0"),
+        (lambda: dna.stiffness_from_persistence(0.0), "stiffness_from_persistence: length must be finite and > 0"),
+        (lambda: dna.bdna_from_helix(0.0, 0.0, 1.0), "bdna_from_helix: need a helix"),
+        (lambda: dna.bdna_from_helix(kappa0, tau0, -ell), "bdna_from_helix: need a helix"),
+        (lambda: dna.tweezer_from_helix(kappa0, tau0, n_bp=-5), "tweezer_from_helix: n_bp and length_per_bp"),
+        (lambda: dna.helix_from_tweezer(1.0, 1.0, n_bp=0), "helix_from_tweezer: n_bp and length_per_bp"),
+        (lambda: dna.wlc_force(0.5, -50.0), "wlc_force: persistence_length must be finite and > 0"),
+        (lambda: dna.wlc_extension(1.0, 0.0), "wlc_extension: persistence_length"),
+        (lambda: dna.wlc_free_energy(1.0, np.inf), "wlc_free_energy: persistence_length"),
+        (lambda: dna.moroz_nelson_twist_modulus(400.0, 1.0, -1.0), "moroz_nelson_twist_modulus: persistence_length"),
+    )
+    for call, message in concrete:
+        with pytest.raises(ValueError, match=message):
+            call()
+    # Traced: NaN at the bad point, its neighbour untouched.
+    force = jax.vmap(lambda A: dna.wlc_force(0.5, A))(jnp.array([50.0, -50.0]))
+    np.testing.assert_allclose(force[0], dna.wlc_force(0.5, 50.0), rtol=1e-15)
+    assert np.isnan(force[1])
+    h, _ = jax.vmap(lambda n: dna.tweezer_from_helix(kappa0, tau0, n_bp=n))(jnp.array([10.0, -5.0]))
+    np.testing.assert_allclose(h[0], 3.4, rtol=1e-12)  # ten rises of 0.34 nm
+    assert np.isnan(h[1])
+    rise = jax.vmap(lambda k: dna.bdna_from_helix(k, 0.0 * k, ell)[0])(jnp.array([0.0, kappa0]))
+    assert np.isnan(rise[0]) and np.isfinite(rise[1])

@@ -101,8 +101,11 @@ def test_data_types_and_options_of_the_models():
     with pytest.raises(ValueError, match="fit_offsets= does not apply to HelixData"):
         hr.fit_stiffness(hr.HelixData([1.0], [1.0], [1.0], [1.0]), fit_offsets=True)
         for solver in ("adam", "lbfgs", ADAM):
-            with pytest.raises(ValueError, match="is not available for finite-rod data"):
+            with pytest.raises(ValueError, match=f"is not available for {type(data).__name__} "):
                 hr.fit_stiffness(data, solver=solver)
+    tweezer = hr.dna.TweezerData.from_arrays([1.0, 2.0], [2300.0, 2400.0], extension_sigma=2.0, torque=0.0, n_bp=8000)
+    with pytest.raises(ValueError, match="is not available for TweezerData "):
+        hr.fit_stiffness(tweezer, solver="adam")
     for bad in ({"force": [1.0]}, np.ones((3, 4)), None):
         with pytest.raises(ValueError, match="data must be a HelixData, EndResponseData, ShapeData or TweezerData, got"):
             hr.fit_stiffness(bad)

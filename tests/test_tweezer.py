@@ -176,6 +176,29 @@ def test_bad_input_and_flagged_points():
         tw.tweezer_response(ROD, 1000, jnp.array([0.02, 0.02]), turns=jnp.array([0.0, 2.0]), throw=True)
 
 
+def test_bad_molecules_parameters_and_empty_input():
+    # A base-pair count that is not finite and > 0 flags its point under vmap, both controls.
+    batch = jax.vmap(lambda n: tw.tweezer_response(ROD, n, 1.0, turns=3.0))(jnp.array([8000.0, -8000.0, jnp.nan, 0.0]))
+    assert batch.ok.tolist() == [True, False, False, False]
+    assert np.all(np.isnan(np.asarray(batch.extension[1:])))
+    np.testing.assert_allclose(batch.extension[0], tw.tweezer_response(ROD, 8000, 1.0, turns=3.0).extension, rtol=1e-12)
+    # The filament: a length per base pair > 0 and a helix that rises along its axis.
+    for bad in (-0.688, 0.0, np.nan):
+        with pytest.raises(ValueError, match="length_per_bp must be a finite scalar > 0"):
+            tw.tweezer_response(ROD, 8000, 1.0, torque=0.0, length_per_bp=bad)
+    left = hr.Rod(ROD.K1, ROD.K2, ROD.K3, ROD.K13, ROD.K23, uhat=(0.0, 0.755954, -0.42952))
+    with pytest.raises(ValueError, match="must rise along its axis"):
+        tw.tweezer_response(left, 8000, 1.0, torque=0.0)
+    with pytest.raises(ValueError, match="temperature must be a scalar"):
+        tw.tweezer_response(ROD, 8000, 1.0, turns=3.0, temperature=jnp.array([300.0, 310.0]))
+    with pytest.raises(ValueError, match="temperature must be finite and > 0"):
+        tw.tweezer_response(ROD, 8000, 1.0, turns=3.0, temperature=-1.0)
+    # Empty input: an empty response.
+    for control in ({"torque": 0.0}, {"turns": jnp.ones((0,))}):
+        empty = tw.tweezer_response(ROD, 8000, jnp.ones((0,)), **control)
+        assert empty.extension.shape == (0,) and empty.ok.shape == (0,)
+
+
 @pytest.mark.slow
 def test_tweezer_fit_recovers_the_generating_parameters():
     rng = np.random.default_rng(1)
@@ -238,6 +261,49 @@ def test_moduli_along_the_force_range():
     np.testing.assert_allclose(rod_line.get_ydata(), moduli.twist_stretch_coupling)
     with pytest.raises(ValueError, match="two or more forces"):
         plot.plot_tweezer_moduli(jax.tree.map(lambda x: x[:1], moduli))
+
+
+@pytest.mark.heavy
+def test_traced_filament_torque_and_temperature():
+    """Traced values the eager checks cannot see flag their points; a free swivel's bad
+    base-pair count too."""
+    traced = jax.jit(lambda ell: tw.tweezer_response(ROD, 8000, jnp.array([1.0, 2.0]), torque=0.0, length_per_bp=ell).ok)
+    assert traced(-0.688).tolist() == [False, False] and traced(0.688).tolist() == [True, True]
+    batch = jax.vmap(lambda n: tw.tweezer_response(ROD, n, 1.0, torque=0.0))(jnp.array([8000.0, -8000.0]))
+    assert batch.ok.tolist() == [True, False]
+    at = lambda T: tw.tweezer_response(ROD, 8000, 1.0, turns=3.0, temperature=T)  # noqa: E731
+    value, ok = jax.vmap(lambda T: (at(T).extension, at(T).ok))(jnp.array([300.0, -300.0]))
+    np.testing.assert_allclose(value[0], at(300.0).extension, rtol=1e-12)
+    assert ok.tolist() == [True, False]
+
+
+@pytest.mark.heavy
+def test_moduli_of_bad_forces_and_parameters():
+    with pytest.raises(ValueError, match="force must be finite and > 0"):
+        dna.tweezer_moduli(ROD, jnp.array([jnp.inf, 1.0]))
+    for name in ("persistence_length", "plectoneme_twist_persistence"):
+        with pytest.raises(ValueError, match=f"{name} must be finite and > 0"):
+            dna.tweezer_moduli(ROD, 1.0, **{name: -10.0})
+        with pytest.raises(ValueError, match=f"{name} must be a scalar or one per force"):
+            dna.tweezer_moduli(ROD, jnp.array([1.0, 2.0]), **{name: jnp.ones(3)})
+    with pytest.raises(ValueError, match="length_per_bp must be a finite scalar > 0"):
+        dna.tweezer_moduli(ROD, 1.0, length_per_bp=0.0)
+    # Traced: a bad force is NaN in every field (not another force's values), the others
+    # untouched, and derivatives at the good ones finite.
+    moduli = jax.vmap(lambda F: dna.tweezer_moduli(ROD, F))(jnp.array([1.0, jnp.nan, -1.0, jnp.inf]))
+    alone = dna.tweezer_moduli(ROD, 1.0)
+    for field in ("stretch_modulus", "twist_modulus", "twist_stretch_coupling", "twist_modulus_at_constant_force",
+                  "effective_twist_modulus", "buckling_torque"):
+        values = np.asarray(getattr(moduli, field))[:, 0]
+        np.testing.assert_allclose(values[0], getattr(alone, field)[0], rtol=1e-12, err_msg=field)
+        assert np.all(np.isnan(values[1:])), field
+    slope = jax.grad(lambda A: jnp.nansum(jax.vmap(lambda F: dna.tweezer_moduli(ROD, F, persistence_length=A).effective_twist_modulus[0])(jnp.array([1.0, -1.0]))))(50.0)
+    assert np.isfinite(float(slope)) and float(slope) > 0  # stiffer chains soften twist less
+    # One persistence per force: each point as its own call.
+    pair = dna.tweezer_moduli(ROD, jnp.array([1.0, 2.0]), persistence_length=jnp.array([40.0, 50.0]))
+    for i, (F, A_i) in enumerate(((1.0, 40.0), (2.0, 50.0))):
+        single = dna.tweezer_moduli(ROD, F, persistence_length=A_i)
+        np.testing.assert_allclose(pair.effective_twist_modulus[i], single.effective_twist_modulus[0], rtol=1e-12)
 
 
 def test_free_swivel_matches_pylake_twlc_with_constant_coupling():

@@ -20,11 +20,10 @@ from __future__ import annotations
 import math
 
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from ._geometry import curvature_torsion, height_and_turns
-from ._misc import is_concrete
+from ._misc import require_valid
 
 # -- units and constants (plain Python floats: no module-level jnp arrays) -------------
 BOLTZMANN_CONSTANT = 1.380649e-23
@@ -39,16 +38,6 @@ ROOM_TEMPERATURE = 298.15
 """Default temperature, kelvin (25 °C)."""
 
 
-def _require(ok, message: str, *values):
-    """Raise ValueError when concrete inputs break `ok`; traced inputs are not raised on
-    (the caller returns NaN there, so one bad point in a batch spoils nothing else)."""
-    if is_concrete(ok, *values):
-        bad = ~np.asarray(ok)
-        if bad.any():
-            where = "" if bad.ndim == 0 else f" (at indices {np.argwhere(bad)[:5].tolist()})"
-            raise ValueError(message + where)
-
-
 def kT(temperature: ArrayLike = ROOM_TEMPERATURE, unit: str = "pN nm") -> Array:
     """Thermal energy $k_B T$ at `temperature` (kelvin): in pN nm (default) or "J".
 
@@ -56,7 +45,7 @@ def kT(temperature: ArrayLike = ROOM_TEMPERATURE, unit: str = "pN nm") -> Array:
     """
     temperature = jnp.asarray(temperature, jnp.result_type(float))
     ok = jnp.isfinite(temperature) & (temperature > 0)
-    _require(ok, "kT: temperature must be finite and > 0 kelvin", temperature)
+    require_valid(ok, "kT: temperature must be finite and > 0 kelvin", temperature)
     energy_joule = jnp.where(ok, BOLTZMANN_CONSTANT * temperature, jnp.nan)
     if unit == "J":
         return energy_joule
@@ -69,15 +58,22 @@ def persistence_length(stiffness: ArrayLike, temperature: ArrayLike = ROOM_TEMPE
     """Persistence length $A = B/k_BT$ (nm) of a bending or twist stiffness $B$ (pN nm^2).
 
     The same relation gives the bending persistence from the bending stiffness and the
-    twist persistence $C_{tw} = C/k_BT$ from the twist modulus.
+    twist persistence $C_{tw} = C/k_BT$ from the twist modulus.  A stiffness must be finite
+    and > 0: concrete values that are not raise `ValueError`, traced ones give NaN.
     """
-    return jnp.asarray(stiffness) / kT(temperature)
+    stiffness = jnp.asarray(stiffness, jnp.result_type(float))
+    ok = _finite_positive(stiffness)
+    require_valid(ok, "persistence_length: stiffness must be finite and > 0 pN nm^2", stiffness)
+    return jnp.where(ok, stiffness, jnp.nan) / kT(temperature)
 
 
 def stiffness_from_persistence(length: ArrayLike, temperature: ArrayLike = ROOM_TEMPERATURE) -> Array:
     """Stiffness $B = k_BT\\,A$ (pN nm^2) of a persistence length $A$ (nm); inverse of
-    `persistence_length`."""
-    return kT(temperature) * jnp.asarray(length)
+    `persistence_length`.  A length must be finite and > 0 (as `persistence_length`)."""
+    length = jnp.asarray(length, jnp.result_type(float))
+    ok = _finite_positive(length)
+    require_valid(ok, "stiffness_from_persistence: length must be finite and > 0 nm", length)
+    return kT(temperature) * jnp.where(ok, length, jnp.nan)
 
 
 # -- the B-DNA backbone helix ----------------------------------------------------------
@@ -96,7 +92,7 @@ def helix_from_bdna(
     dtype = jnp.result_type(float)
     rise, bp_per_turn, radius = (jnp.asarray(x, dtype) for x in (rise, bp_per_turn, radius))
     ok = (rise > 0) & (bp_per_turn > 0) & (radius > 0) & jnp.isfinite(rise * bp_per_turn * radius)
-    _require(ok, "helix_from_bdna: rise, bp_per_turn and radius must be finite and > 0", rise, bp_per_turn, radius)
+    require_valid(ok, "helix_from_bdna: rise, bp_per_turn and radius must be finite and > 0", rise, bp_per_turn, radius)
     pitch = rise * bp_per_turn / (2 * jnp.pi)
     kappa, tau = curvature_torsion(radius, pitch)
     length_per_bp = jnp.hypot(rise, 2 * jnp.pi * radius / bp_per_turn)
@@ -107,8 +103,14 @@ def bdna_from_helix(kappa: ArrayLike, tau: ArrayLike, length_per_bp: ArrayLike) 
     """Inverse of `helix_from_bdna`: `(rise, bp_per_turn, radius)` in nm and base pairs.
 
     rise $= \\ell\\tau/|u|$, base pairs per turn $= 2\\pi/(\\ell|u|)$, radius $= \\kappa/|u|^2$.
+    Needs a helix ($|u| > 0$, finite) and $\\ell > 0$: concrete inputs that break this raise
+    `ValueError`, traced ones give NaN.
     """
-    kappa, tau, length_per_bp = (jnp.asarray(x) for x in (kappa, tau, length_per_bp))
+    dtype = jnp.result_type(float)
+    kappa, tau, length_per_bp = (jnp.asarray(x, dtype) for x in (kappa, tau, length_per_bp))
+    ok = _finite_positive(jnp.hypot(kappa, tau)) & _finite_positive(length_per_bp)
+    require_valid(ok, "bdna_from_helix: need a helix (kappa, tau finite, not both 0) and length_per_bp > 0", kappa, tau, length_per_bp)
+    kappa, tau = jnp.where(ok, kappa, jnp.nan), jnp.where(ok, tau, jnp.nan)
     rise, turns_per_bp = height_and_turns(kappa, tau, length_per_bp)
     radius = kappa / (kappa**2 + tau**2)
     return rise, 1.0 / turns_per_bp, radius
@@ -134,7 +136,7 @@ def helix_from_observables(extension: ArrayLike, rotation: ArrayLike, length: Ar
     extension, rotation, length = (jnp.asarray(x, dtype) for x in (extension, rotation, length))
     ratio = extension / length
     ok = (length > 0) & (rotation > 0) & (jnp.abs(ratio) < 1) & jnp.isfinite(ratio * rotation)
-    _require(
+    require_valid(
         ok,
         "helix_from_observables: need length > 0, rotation > 0 and |extension| < length",
         extension,
@@ -149,10 +151,18 @@ def helix_from_observables(extension: ArrayLike, rotation: ArrayLike, length: Ar
     return kappa, tau
 
 
-def _length_per_bp(length_per_bp):
-    if length_per_bp is None:
-        return helix_from_bdna()[2]
-    return jnp.asarray(length_per_bp, jnp.result_type(float))
+def _finite_positive(x):
+    return jnp.isfinite(x) & (x > 0)
+
+
+def _contour(n_bp, length_per_bp, owner: str):
+    """The contour length of `n_bp` base pairs of `length_per_bp` (default B-DNA's), both
+    finite and > 0 (`ValueError` naming `owner` for concrete ones; NaN for traced ones)."""
+    n_bp = jnp.asarray(n_bp, jnp.result_type(float))
+    ell = helix_from_bdna()[2] if length_per_bp is None else jnp.asarray(length_per_bp, jnp.result_type(float))
+    ok = _finite_positive(n_bp) & _finite_positive(ell)
+    require_valid(ok, f"{owner}: n_bp and length_per_bp must be finite and > 0", n_bp, ell)
+    return jnp.where(ok, n_bp * ell, jnp.nan)
 
 
 def tweezer_from_helix(
@@ -164,7 +174,7 @@ def tweezer_from_helix(
     `length_per_bp` is the backbone filament length per base pair, held fixed (default:
     the B-DNA value of `helix_from_bdna()`).
     """
-    return observables_from_helix(kappa, tau, jnp.asarray(n_bp) * _length_per_bp(length_per_bp))
+    return observables_from_helix(kappa, tau, _contour(n_bp, length_per_bp, "tweezer_from_helix"))
 
 
 def helix_from_tweezer(
@@ -175,7 +185,7 @@ def helix_from_tweezer(
     Inverse of `tweezer_from_helix`.  The backbone helix alone, without thermal
     fluctuations: a measured extension is shortened by them (~15 % at 1 pN), so fit measured
     tweezer curves with `TweezerData` and `tweezer_response` instead."""
-    return helix_from_observables(extension, rotation, jnp.asarray(n_bp) * _length_per_bp(length_per_bp))
+    return helix_from_observables(extension, rotation, _contour(n_bp, length_per_bp, "helix_from_tweezer"))
 
 
 def _reference(reference):

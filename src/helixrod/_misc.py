@@ -83,6 +83,17 @@ def differentiated_part(tree, tangents):
     return diff, static, eqx.filter(tangents, mask, is_leaf=is_none)
 
 
+def require_valid(ok, message: str, *values) -> None:
+    """Raise `ValueError(message)` (with the indices of the first bad points) when concrete
+    inputs break `ok`; traced inputs are not raised on (the caller returns NaN there, so
+    one bad point in a batch spoils nothing else)."""
+    if is_concrete(ok, *values):
+        bad = ~np.asarray(ok)
+        if bad.any():
+            where = "" if bad.ndim == 0 else f" (at indices {np.argwhere(bad)[:5].tolist()})"
+            raise ValueError(message + where)
+
+
 def check_integer(value, name: str, owner: str, minimum: int = 1) -> int:
     """`value` as an `int`, or `ValueError` unless it is an integer (not a bool) >= `minimum`."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:

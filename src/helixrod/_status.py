@@ -34,9 +34,8 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     residual_above_tolerance = "The solver stopped, but the residual is above its tolerance."
     cost_not_finite = "The cost of the best start is not finite."
     outside_model_range = (
-        "The point is outside the model's range of validity (a force too low for the "
-        "twist-fluctuation theory, whose correction is no longer small, or no buckling "
-        "transition because the plectoneme phase is stiffer than the extended one)."
+        "The point is outside the model's range of validity (a torque acts at a force too "
+        "low for the twist-fluctuation theory, whose correction is no longer small)."
     )
     weights_not_settled = (
         "The weights of errors in variables did not settle: each solve with the weights of "

@@ -58,8 +58,6 @@ monovalent salt; it depends on the buffer: fit it where the data show plectoneme
 
 from __future__ import annotations
 
-import math
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -70,7 +68,7 @@ from ._compile import filter_jit
 from ._bvp import helix_under_wrench
 from ._dna import ROOM_TEMPERATURE, helix_from_bdna
 from ._dna import kT as thermal_energy
-from ._misc import float_dtype, inverse_small, is_concrete, safe_sqrt
+from ._misc import float_dtype, inverse_small, is_concrete, require_valid, safe_sqrt
 from ._rod import check_one_rod
 from ._status import RESULTS, raise_if_failed
 
@@ -128,6 +126,15 @@ def _wlc_jvp(primals, tangents):
     return z, df / jnp.vectorize(slope)(z)
 
 
+def _persistence(persistence_length, owner: str) -> Array:
+    """A bending persistence (nm), finite and > 0: concrete values that are not raise
+    `ValueError` naming `owner`, traced ones become NaN."""
+    A = jnp.asarray(persistence_length, float_dtype())
+    ok = jnp.isfinite(A) & (A > 0)
+    require_valid(ok, f"{owner}: persistence_length must be finite and > 0 nm", A)
+    return jnp.where(ok, A, jnp.nan)
+
+
 def _dimensionless_force(force, persistence_length, temperature):
     return force * persistence_length / thermal_energy(temperature)
 
@@ -137,20 +144,21 @@ def wlc_force(
 ) -> Array:
     """Force (pN) of an inextensible worm-like chain at relative extension $z$ = extension /
     contour length, bending persistence `persistence_length` (nm): Bouchiat et al. (1999).
-    $0 \\le z < 1$; other values give NaN."""
+    $0 \\le z < 1$; other values give NaN (a persistence that is not finite and > 0 raises
+    `ValueError`, or gives NaN where traced)."""
     z = jnp.asarray(relative_extension, float_dtype())
     ok = (z >= 0) & (z < 1)
     safe = jnp.where(ok, z, 0.5)
-    force = thermal_energy(temperature) / jnp.asarray(persistence_length) * _bouchiat_force(safe)
+    force = thermal_energy(temperature) / _persistence(persistence_length, "wlc_force") * _bouchiat_force(safe)
     return jnp.where(ok, force, jnp.nan)
 
 
 def wlc_extension(force: ArrayLike, persistence_length: ArrayLike = 50.0, temperature: ArrayLike = ROOM_TEMPERATURE) -> Array:
     """Relative extension $z$ (extension / contour length) of an inextensible worm-like chain
     at `force` (pN), the inverse of `wlc_force`; differentiable (implicit function).
-    $F \\ge 0$; a negative or non-finite force gives NaN."""
+    $F \\ge 0$; a negative or non-finite force gives NaN (a persistence as `wlc_force`)."""
     force = jnp.asarray(force, float_dtype())
-    f = _dimensionless_force(force, persistence_length, temperature)
+    f = _dimensionless_force(force, _persistence(persistence_length, "wlc_extension"), temperature)
     ok = jnp.isfinite(f) & (f >= 0)
     return jnp.where(ok, _wlc_relative_extension(jnp.where(ok, f, 1.0)), jnp.nan)
 
@@ -160,7 +168,8 @@ def wlc_free_energy(force: ArrayLike, persistence_length: ArrayLike = 50.0, temp
     contour length of a worm-like chain held at `force`, in closed form from the
     interpolation ($fz - \\int_0^z f\\,dz'$ in units of $k_BT/A$)."""
     force = jnp.asarray(force, float_dtype())
-    energy_unit = thermal_energy(temperature) / jnp.asarray(persistence_length)
+    persistence_length = _persistence(persistence_length, "wlc_free_energy")
+    energy_unit = thermal_energy(temperature) / persistence_length
     f = force / energy_unit
     z = wlc_extension(force, persistence_length, temperature)
     return energy_unit * (f * z - _bouchiat_integral(z))
@@ -175,7 +184,7 @@ def moroz_nelson_twist_modulus(
     correction is small; NaN where it reaches 1)."""
     kT = thermal_energy(temperature)
     C = jnp.asarray(twist_modulus, float_dtype())
-    A = jnp.asarray(persistence_length)
+    A = _persistence(persistence_length, "moroz_nelson_twist_modulus")
     c = C / (4 * A * kT) * jnp.sqrt(kT / (A * jnp.asarray(force)))
     return jnp.where(c < 1, C * (1 - c), jnp.nan)
 
@@ -216,13 +225,26 @@ class TweezerResponse(eqx.Module):
         return self.result == RESULTS.successful
 
 
-def filament_and_rise(rod, length_per_bp=None) -> tuple[Array, Array]:
+def filament_and_rise(rod, length_per_bp=None, owner: str | None = None) -> tuple[Array, Array]:
     """The filament length $\\ell$ per base pair (default: the B-DNA backbone of
-    `helix_from_bdna`) and the rise $h_0 = \\ell\\,\\hat u_3/|\\hat u|$ of the unloaded helix."""
+    `helix_from_bdna`) and the rise $h_0 = \\ell\\,\\hat u_3/|\\hat u|$ of the unloaded helix.
+    With an `owner` (a public function's name), concrete values must have both finite and
+    > 0 (`ValueError` naming them): a molecule's contour $L_0 = N h_0$ is positive, so the
+    backbone helix must rise along its axis ($\\hat u_3 > 0$, right-handed as B-DNA's);
+    traced ones are flagged by `response_point`."""
     dtype = float_dtype()
     ell = jnp.asarray(helix_from_bdna()[2] if length_per_bp is None else length_per_bp, dtype)
     uhat = jnp.asarray(rod.uhat, dtype)
-    return ell, ell * uhat[2] / jnp.linalg.norm(uhat)
+    rise = ell * uhat[2] / jnp.linalg.norm(uhat)
+    if owner is not None and is_concrete(ell):
+        if ell.ndim != 0 or not (np.isfinite(float(ell)) and float(ell) > 0):
+            raise ValueError(f"{owner}: length_per_bp must be a finite scalar > 0 nm, got {np.asarray(ell)}")
+    if owner is not None and is_concrete(rise) and not (np.isfinite(float(rise)) and float(rise) > 0):
+        raise ValueError(
+            f"{owner}: the rod's unloaded helix must rise along its axis (uhat[2] > 0: a right-handed backbone "
+            f"helix, as B-DNA's), got uhat = {np.asarray(uhat).tolist()}"
+        )
+    return ell, rise
 
 
 def _bulk(rod, ell, force, torque, guess=None):
@@ -260,6 +282,12 @@ def _gibbs(rod, ell, u, extension, rotation, force, torque):
     return ell * rod.energy(u) - force * extension - torque * rotation
 
 
+def _valid_point(force, A, P, ell, rise, kT):
+    """Whether one point's force, persistences, filament length, rise and $k_BT$ are all
+    finite and > 0 (traced)."""
+    return jnp.all(jnp.stack([jnp.isfinite(x) & (x > 0) for x in (force, A, P, ell, rise, kT)]))
+
+
 def response_point(rod, ell, rise, force, control, torque_controlled, persistence_length, plectoneme_twist, kT):
     """One base pair's extension, rotation and state at `force` under `control` (a torque if
     `torque_controlled`, else a rotation per base pair in radians); helper of
@@ -277,7 +305,7 @@ def response_point(rod, ell, rise, force, control, torque_controlled, persistenc
     free_swivel = torque_controlled is True and isinstance(control, (int, float)) and control == 0
     controlled = jnp.asarray(torque_controlled)
     control = jnp.asarray(control, dtype)
-    good_input = jnp.isfinite(force) & (force > 0) & jnp.isfinite(control) & (A > 0) & (P > 0)
+    good_input = _valid_point(force, A, P, ell, rise, kT) & jnp.isfinite(control)
     F = jnp.where(good_input, force, 1.0)
     control = jnp.where(good_input, control, 0.0)
 
@@ -384,6 +412,18 @@ def response_point(rod, ell, rise, force, control, torque_controlled, persistenc
     return extension, rotation, torque, phase, fraction, parts, (C0, C_eff, buckling), result
 
 
+def _thermal_energy_of(temperature, owner: str) -> Array:
+    """$k_BT$ (pN nm) at a scalar `temperature` (kelvin, traced or not): a concrete one must
+    be finite and > 0 (`ValueError` naming `owner`); a traced one that is not gives NaN,
+    which flags every point (`response_point`)."""
+    temperature = jnp.asarray(temperature, float_dtype())
+    if temperature.ndim != 0:
+        raise ValueError(f"{owner}: temperature must be a scalar (kelvin), got shape {temperature.shape}")
+    if is_concrete(temperature) and not (np.isfinite(float(temperature)) and float(temperature) > 0):
+        raise ValueError(f"{owner}: temperature must be finite and > 0 kelvin, got {float(temperature)}")
+    return thermal_energy(temperature)
+
+
 @filter_jit
 def _responses(rod, ell, rise, force, control, by_torque: bool, n_bp, persistence_length, plectoneme_twist, kT):
     """`response_point` per point, scaled to whole molecules; `control=None`: a free swivel."""
@@ -393,6 +433,7 @@ def _responses(rod, ell, rise, force, control, by_torque: bool, n_bp, persistenc
         ext, rot, torque, phase, fraction, parts, moduli, result = response_point(
             rod, ell, rise, F, per_bp, by_torque, A, P, kT
         )
+        result = RESULTS.where(jnp.isfinite(N) & (N > 0), result, RESULTS.invalid_input)
         good = result == RESULTS.successful
         masked = lambda x: jnp.where(good, x, jnp.nan)
         return (
@@ -427,10 +468,13 @@ def tweezer_response(
     plectonemes with twist persistence `plectoneme_twist_persistence` (nm).
 
     `rod`: stiffnesses in pN nm^2 and twists in 1/nm, its `uhat` the backbone helix (e.g.
-    `dna.load_tweezer_example().rod`); `length_per_bp`: the filament length per base pair
-    (default: the B-DNA backbone of `helix_from_bdna`).  Array arguments broadcast
-    elementwise (one point each); jit, vmap and differentiable in the rod and every
-    parameter.  `throw=True` raises `SolverError` if a point fails; otherwise read `result`
+    `dna.load_tweezer_example().rod`; right-handed, $\\hat u_3 > 0$); `length_per_bp`: the
+    filament length per base pair (default: the B-DNA backbone of `helix_from_bdna`);
+    `temperature` (kelvin) a scalar.  The other array arguments broadcast elementwise (one
+    point each); jit, vmap and differentiable in the rod and every parameter.  Concrete
+    invalid values (a force, base-pair count, persistence or temperature that is not
+    finite and > 0, non-finite turns or torque) raise `ValueError`; traced ones flag their
+    points `invalid_input`.  `throw=True` raises `SolverError` if a point fails; otherwise read `result`
     and `ok` (a failed or out-of-range point is NaN, the others are untouched).
 
     **Example**
@@ -460,13 +504,12 @@ def tweezer_response(
             if bad.any():
                 rule = "finite and > 0" if positive else "finite"
                 raise ValueError(f"tweezer_response: {name} must be {rule} (bad at flat indices {np.flatnonzero(bad)[:5].tolist()})")
-    if not (math.isfinite(temperature) and temperature > 0):
-        raise ValueError(f"tweezer_response: temperature must be finite and > 0 kelvin, got {temperature}")
-    ell, rise = filament_and_rise(rod, length_per_bp)
+    kT = _thermal_energy_of(temperature, "tweezer_response")
+    ell, rise = filament_and_rise(rod, length_per_bp, "tweezer_response")
     if x.size == 0:
         empty = jnp.zeros(shape, dtype)
-        return TweezerResponse(*([empty] * 3), jnp.zeros(shape, jnp.int32), *([empty] * 7), RESULTS.where(jnp.zeros(shape, bool), RESULTS.successful, RESULTS.successful))
-    kT = thermal_energy(temperature)
+        none = jax.tree.map(lambda code: jnp.broadcast_to(code, shape), RESULTS.successful)
+        return TweezerResponse(*([empty] * 3), jnp.zeros(shape, jnp.int32), *([empty] * 7), none)
     free_swivel = by_torque and is_concrete(x) and not np.any(np.asarray(x))
     ext, rot, tq, phase, fraction, parts, moduli, result = _responses(
         rod, ell, rise, F, None if free_swivel else x, by_torque, n, A, P, kT
@@ -513,10 +556,17 @@ class TweezerModuli(eqx.Module):
 
 @filter_jit
 def _moduli(rod, ell, rise, force, A, P, kT):
-    """S, C, g, C0, C_eff and the buckling torque at each of `force` (`tweezer_moduli`), in
-    one compiled program (evaluated operation by operation, four forces took 20-30 s)."""
+    """S, C, g, C0, C_eff and the buckling torque at each of `force` with persistence `A`
+    and plectoneme twist persistence `P` (`tweezer_moduli`; one each per force), in one
+    compiled program (evaluated operation by operation, four forces took 20-30 s).  NaN
+    throughout at a point whose input is invalid (`_valid_point`), computed at a harmless
+    force there so that derivatives stay finite elsewhere."""
 
-    def at(F):
+    def at(force, A, P):
+        valid = _valid_point(force, A, P, ell, rise, kT)
+        F = jnp.where(valid, force, 1.0)
+        A, P = jnp.where(valid, A, 1.0), jnp.where(valid, P, 1.0)
+
         def observables(wrench):
             values = jnp.stack(_extension_and_rotation(ell, _bulk(rod, ell, wrench[0], wrench[1])[0]))
             return values, values
@@ -532,9 +582,9 @@ def _moduli(rod, ell, rise, force, A, P, kT):
         in_range = C0 / (4 * A * kT) * jnp.sqrt(kT / (A * F)) <= MAX_TWIST_CORRECTION
         C_eff = jnp.where(in_range, C_eff, jnp.nan)
         buckling = jnp.where(in_range, jnp.where(buckling >= NO_BUCKLING, jnp.inf, buckling), jnp.nan)
-        return S, C, g, C0, C_eff, buckling
+        return tuple(jnp.where(valid, x, jnp.nan) for x in (S, C, g, C0, C_eff, buckling))
 
-    return jax.vmap(at)(force)
+    return jax.vmap(at)(force, A, P)
 
 
 def tweezer_moduli(
@@ -552,18 +602,32 @@ def tweezer_moduli(
     stiffnesses through the nonlinear helix (beside twistable-WLC fits' phenomenological
     g0 + g1 F).  The twist softening and the buckling torque are NaN below the range of the
     Moroz-Nelson theory (its correction above 1/2).  Differentiable in the rod and the
-    parameters: with a tweezer fit, error bars come from `StiffnessFit.propagate`."""
-    check_one_rod(rod, "tweezer_moduli")
+    parameters: with a tweezer fit, error bars come from `StiffnessFit.propagate`.
+
+    `persistence_length` and `plectoneme_twist_persistence` (nm): scalars or one per force;
+    `temperature` (kelvin) a scalar.  Concrete values that are not finite and > 0 (forces,
+    persistences, temperature, `length_per_bp`, the rod's rise) raise `ValueError`; traced
+    ones give NaN in every field of their point."""
+    owner = "tweezer_moduli"
+    check_one_rod(rod, owner)
     dtype = float_dtype()
     force = jnp.atleast_1d(jnp.asarray(force, dtype))
     if force.ndim != 1:
-        raise ValueError(f"tweezer_moduli: force must be a scalar or 1-D, got shape {force.shape}")
-    if is_concrete(force) and not np.all(np.asarray(force) > 0):
-        raise ValueError("tweezer_moduli: force must be finite and > 0 pN")
-    ell, rise = filament_and_rise(rod, length_per_bp)
-    kT = thermal_energy(temperature)
-    A = jnp.asarray(persistence_length, dtype)
-    P = jnp.asarray(plectoneme_twist_persistence, dtype)
+        raise ValueError(f"{owner}: force must be a scalar or 1-D, got shape {force.shape}")
+    parameters = {}
+    for name, value in (("persistence_length", persistence_length), ("plectoneme_twist_persistence", plectoneme_twist_persistence)):
+        value = jnp.asarray(value, dtype)
+        if value.ndim > 1 or (value.ndim == 1 and value.shape != force.shape):
+            raise ValueError(f"{owner}: {name} must be a scalar or one per force {force.shape}, got shape {value.shape}")
+        parameters[name] = jnp.broadcast_to(value, force.shape)
+    for name, value in (("force", force), *parameters.items()):
+        if is_concrete(value):
+            bad = ~(np.isfinite(np.asarray(value)) & (np.asarray(value) > 0))
+            if bad.any():
+                raise ValueError(f"{owner}: {name} must be finite and > 0 (bad at indices {np.flatnonzero(bad)[:5].tolist()})")
+    kT = _thermal_energy_of(temperature, owner)
+    ell, rise = filament_and_rise(rod, length_per_bp, owner)
+    A, P = parameters["persistence_length"], parameters["plectoneme_twist_persistence"]
 
     S, C, g, C0, C_eff, buckling = _moduli(rod, ell, rise, force, A, P, kT)
     return TweezerModuli(force, S, C, g, C0, C_eff, buckling)

@@ -67,7 +67,10 @@ class StiffnessFit(eqx.Module):
     `helix_equilibria` used per point), with errors in variables also
     `residual_covariance` (n, 3: var F, cov FM, var M of the effective covariance that
     whitens each point's pair); end responses: the two measured responses;
-    shapes: `points`; the linear fit: `moment` vectors.  Convergence: `result` (a `RESULTS`
+    shapes: `points`; tweezer data: `extension` (with the offsets), `torque`, `phase`, `ok`
+    (false at points the model flags, e.g. outside its range: the report notes them),
+    `extension_sigma` (and `residual_sigma` with errors in variables); the linear fit:
+    `moment` vectors.  Convergence: `result` (a `RESULTS`
     code of the best start), `ok`, `message`, `n_steps` (of the best start), `n_starts`,
     `n_agree` (starts that reached the best minimum, up to the symmetries), `start_costs`.
     `identifiability`: see `Identifiability`.  `method`: the solver's name.  The numbers
@@ -529,7 +532,7 @@ def fit_stiffness(
       `n_starts`, `start_costs` and `n_agree` count the starts solved.
     - `solver`: an optimistix least-squares solver (e.g. `optimistix.LevenbergMarquardt(rtol,
       atol)`) or minimiser of $\\tfrac12\\sum r^2$ (e.g. `optimistix.OptaxMinimiser(optax.adam(
-      1e-2), rtol, atol)`; helix data only: finite-rod models take least-squares solvers),
+      1e-2), rtol, atol)`; helix data only: finite-rod and tweezer models take least-squares solvers),
       or a name from `SOLVERS` (default `"levenberg-marquardt"`), built with `rtol`
       (default 1e-10), `atol` (1e-12) and, for `"adam"`, `learning_rate` (1e-2).
       `max_steps` (>= 1) per start.
@@ -584,8 +587,8 @@ def fit_stiffness(
     method, solver = _solver(solver, rtol, atol, learning_rate)
     if model.forward_mode_only and not isinstance(solver, optx.AbstractLeastSquaresSolver):
         raise ValueError(
-            f"fit_stiffness: solver {method!r} is not available for finite-rod data (the forward model "
-            "is differentiated in forward mode); use 'levenberg-marquardt' or 'gauss-newton'"
+            f"fit_stiffness: solver {method!r} is not available for {type(data).__name__} (its forward model "
+            "is differentiated in forward mode only); use 'levenberg-marquardt' or 'gauss-newton'"
         )
     adaptive = n_starts is None and model.default_starts > 1
     n_starts = model.default_starts if n_starts is None else n_starts
@@ -819,6 +822,23 @@ def _agreement(p_all, cost, model, param, results):
     return best, len(members), p_best
 
 
+def _flagged_points(predicted) -> list[str]:
+    """A note naming the data points the forward model flags at the fit (`predicted["ok"]`
+    false, as a tweezer model's points outside its range): their residuals use the values
+    the model computes there, which the fit cannot tell from others."""
+    ok = predicted.get("ok") if isinstance(predicted, Mapping) else None
+    if ok is None:
+        return []
+    bad = np.flatnonzero(~np.asarray(ok, bool))
+    if bad.size == 0:
+        return []
+    return [
+        f"{bad.size} of {np.size(ok)} data points are flagged by the model at the fit (predicted['ok'] false, "
+        f"e.g. outside its range; points {bad[:10].tolist()}{' ...' if bad.size > 10 else ''}): their residuals "
+        "use the values it computes there"
+    ]
+
+
 def _best_start(solved, agreement, model, param, solver, method, max_steps, absolute_sigma, weak_threshold, *, once):
     """The `StiffnessFit` of the best of the solved starts (what `_multistart` returns),
     with `agreement` (`_agreement`: the best start, how many agree with it, its canonical
@@ -836,6 +856,7 @@ def _best_start(solved, agreement, model, param, solver, method, max_steps, abso
     analysis = error_analysis(
         J, r, dict(zip(param.names, q)), param.scales(param.names), absolute_sigma=absolute_sigma,
         weak_threshold=weak_threshold, symmetries=[text for text, _ in symmetries(param, frame_observed)],
+        notes=_flagged_points(predicted),
     )
     result = jax.tree.map(lambda v: np.asarray(np.asarray(v)[best]), results)  # a 0-d array: `RESULTS[result]` reads it
     if not np.isfinite(analysis.cost):

@@ -507,3 +507,19 @@ def test_a_first_tweezer_fit_compiles_its_programs_side_by_side_once(exported, c
     ours = sorted((thread, name) for thread, name in compilations if name in names)
     assert ours == [(f"helixrod-compile-{name}", name) for name in names], ours
     assert fit.ok and abs(float(fit.params["persistence_length"]) - 48.0) < 3 * float(fit.stderr["persistence_length"])
+
+
+@pytest.mark.heavy
+def test_a_fit_notes_the_points_its_model_flags():
+    """Points twisted at forces below the twist-fluctuation theory's range enter a fit with
+    the values the model computes there; the report says which."""
+    forces = np.array([0.03, 0.05, 0.5, 1.0, 2.0, 4.0])
+    turns = np.array([5.0, 5.0, 5.0, np.nan, np.nan, np.nan])
+    free = tw.tweezer_response(ROD, 8000, forces, torque=0.0)
+    data = dna.TweezerData.from_arrays(
+        forces, np.asarray(free.extension), extension_sigma=5.0, turns=turns, torque=np.where(np.isnan(turns), 0.0, np.nan), n_bp=8000
+    )
+    fixed = {name: float(getattr(ROD, name)) for name in ("K1", "K2", "K3", "K13", "K23")}
+    fit = hr.fit_stiffness(data, uhat=ROD.uhat, init=ROD, fix={**fixed, "persistence_length": 50.0, "plectoneme_twist_persistence": 24.0})
+    assert fit.predicted["ok"].tolist() == [False, False, True, True, True, True]
+    assert "2 of 6 data points are flagged by the model at the fit" in fit.summary() and "points [0, 1]" in fit.summary()

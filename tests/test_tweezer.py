@@ -520,6 +520,6 @@ def test_a_fit_notes_the_points_its_model_flags():
         forces, np.asarray(free.extension), extension_sigma=5.0, turns=turns, torque=np.where(np.isnan(turns), 0.0, np.nan), n_bp=8000
     )
     fixed = {name: float(getattr(ROD, name)) for name in ("K1", "K2", "K3", "K13", "K23")}
-    fit = hr.fit_stiffness(data, uhat=ROD.uhat, init=ROD, fix={**fixed, "persistence_length": 50.0, "plectoneme_twist_persistence": 24.0})
+    fit = hr.fit_stiffness(data, uhat=ROD.uhat, init=ROD, fix={**fixed, "persistence_length": 50.0, "plectoneme_twist_persistence": 24.0}, fit_offsets=True)
     assert fit.predicted["ok"].tolist() == [False, False, True, True, True, True]
     assert "2 of 6 data points are flagged by the model at the fit" in fit.summary() and "points [0, 1]" in fit.summary()

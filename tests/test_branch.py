@@ -168,6 +168,21 @@ def test_bad_arguments_are_named():
 
 
 @pytest.mark.heavy
+def test_a_first_point_that_is_not_isolated_is_named():
+    """A straight twisted shaft between clamps exactly its length apart: every axial force
+    balances it (inextensible), so its equilibria form a continuum, not a branch; the solve
+    finds one, and follow_branch says why it cannot follow them."""
+    rod = helixrod.Rod(1.0, 1.0, 0.8)
+
+    def turned(angle):
+        return helixrod.Clamped(jnp.array([0.0, 0.0, 1.0]), so3_exp(jnp.stack([0.0 * angle, 0.0 * angle, angle])), rotation=angle)
+
+    assert bool(helixrod.solve_boundary_value(rod, 1.0, end=turned(0.5)).ok)
+    with pytest.raises(ValueError, match="the equilibria at the first point are not isolated"):
+        helixrod.follow_branch(rod, 1.0, turned, (0.5, 14.0))
+
+
+@pytest.mark.heavy
 def test_a_first_branch_compiles_its_corrector_beside_the_first_solve(compilations, monkeypatch):
     """The corrector step (`_point`) compiles on a thread of its own from the specs of its
     state, and the points' stability test on another from the corrector's output structure,

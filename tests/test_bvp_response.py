@@ -101,6 +101,9 @@ def test_force_extension_command(tmp_path, monkeypatch):
     np.testing.assert_allclose(line.get_ydata(), np.asarray(direct.extension) - np.asarray(direct.bulk_extension))
     bad = CliRunner().invoke(app, ["force-extension", "--uhat", "0,0,0"])
     assert bad.exit_code != 0 and "must not be zero" in bad.output
+    for turns in ("inf", "nan", "0"):
+        bad = CliRunner().invoke(app, ["force-extension", "--turns", turns])
+        assert bad.exit_code != 0 and "--turns must be finite and > 0" in " ".join(bad.output.split()), turns
     # Rows that fail keep the force that was asked, say why, and what to try.
     long = CliRunner().invoke(app, ["force-extension", "--turns", "20", "--forces", "0:0.5:4", "--segments", "4"])
     assert long.exit_code == 0, long.output
@@ -207,6 +210,22 @@ def test_response_curve_flags_a_bad_point_without_spoiling_the_others():
     keep = np.array([0, 2, 3])
     assert bool(jnp.all(bad.ok[keep]))
     np.testing.assert_allclose(bad.extension[keep], clean.extension[keep], atol=1e-9)
+
+
+@pytest.mark.heavy  # compiles the curve vmapped over lengths
+def test_a_bad_length_in_a_batch_of_curves_is_flagged_bulk_prediction_too():
+    forces = jnp.linspace(0.0, 0.02, 4)
+
+    def curve(length):
+        c = hr.force_extension(SPRING, length, forces, progress=False)
+        return c.extension, c.ok, c.bulk_extension, c.bulk_ok
+
+    extension, ok, bulk, bulk_ok = jax.vmap(curve)(jnp.array([6.0, -1.0, jnp.nan, 12.0]))
+    assert ok.tolist() == bulk_ok.tolist() == [[True] * 4, [False] * 4, [False] * 4, [True] * 4]
+    assert np.all(np.isnan(np.asarray(bulk[1:3]))) and np.all(np.isnan(np.asarray(extension[1:3])))
+    single = hr.force_extension(SPRING, 12.0, forces)
+    np.testing.assert_allclose(extension[3], single.extension, rtol=1e-9)
+    np.testing.assert_allclose(bulk[3], single.bulk_extension, rtol=1e-12)
 
 
 # -- axial_response: any sequence of control pairs ------------------------------------------

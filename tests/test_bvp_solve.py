@@ -456,14 +456,32 @@ def test_bad_input_raises_clear_errors():
         hr.solve_boundary_value(SPRING, 10.0, end=end, guess="bulk")
     with pytest.raises(ValueError, match="guess .n0, m0. needs shapes"):
         hr.solve_boundary_value(SPRING, 10.0, end=end, guess=(jnp.zeros(2), jnp.zeros(3)))
-    with pytest.raises(ValueError, match="saveat must increase"):
-        hr.solve_boundary_value(SPRING, 10.0, end=end, saveat=jnp.array([0.0, 5.0, 4.0]))
-    with pytest.raises(ValueError, match="saveat must increase strictly within"):
-        hr.solve_boundary_value(SPRING, 10.0, end=end, saveat=jnp.array([0.0, 11.0]))
+    for bad in ([0.0, 5.0, 4.0], [0.0, 11.0], [np.nan], [0.0, np.inf]):
+        with pytest.raises(ValueError, match="saveat must be finite and increase strictly within"):
+            hr.solve_boundary_value(SPRING, 10.0, end=end, saveat=jnp.array(bad))
     with pytest.raises(ValueError, match="adjoint"):
         hr.solve_boundary_value(SPRING, 10.0, end=end, adjoint=diffrax.RecursiveCheckpointAdjoint())
     with pytest.raises(ValueError, match="one rod"):
         hr.solve_boundary_value(hr.Rod(jnp.ones(2), 1.0, 1.0), 10.0, end=end)
+
+
+@pytest.mark.heavy  # compiles the vmapped solve
+def test_traced_save_points_that_are_not_arc_lengths_of_the_rod_flag_their_point():
+    """NaN, decreasing or outside [0, L]: flagged `invalid_input`, NaN fields; the others
+    as solved alone."""
+    rod, length = hr.Rod(1.0, 2.0, 0.8), 1.0
+    end = hr.Loaded(force=(1e-3, 0.0, 0.0))
+
+    def one(s1):
+        sol = hr.solve_boundary_value(rod, length, end=end, saveat=jnp.stack([s1, 0.6]), throw=False)
+        return sol.x, sol.ok, sol.valid_input, sol.result == hr.RESULTS.invalid_input
+
+    x, ok, valid, invalid = jax.vmap(one)(jnp.array([0.5, jnp.nan, 0.9, -0.5, 0.6]))
+    assert ok.tolist() == valid.tolist() == [True, False, False, False, False]
+    assert invalid.tolist() == [False, True, True, True, True]
+    assert np.all(np.isnan(np.asarray(x[1:])))
+    alone = hr.solve_boundary_value(rod, length, end=end, saveat=jnp.array([0.5, 0.6]))
+    np.testing.assert_allclose(x[0], alone.x, atol=1e-12)
 
 
 def test_failed_solve_raises_with_throw_and_reports_without():

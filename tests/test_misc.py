@@ -56,6 +56,9 @@ def test_checks_raise_with_the_name_for_bad_concrete_values():
     with pytest.raises(ValueError, match="owner: force must be finite"):
         _misc.finite_array([[1.0, 2.0, np.inf]], "force", "owner", (3,))
     assert _misc.finite_array(np.ones((4, 3)), "force", "owner", (3,)).shape == (4, 3)
+    for bad in ("abc", [1.0, "x", 2.0]):
+        with pytest.raises(ValueError, match="owner: force must be numbers, got"):
+            _misc.finite_array(bad, "force", "owner", (3,))
     for bad in (0, True, 1.5, "2"):
         with pytest.raises(ValueError, match="owner: segments must be an integer >= 1"):
             _misc.check_integer(bad, "segments", "owner")
@@ -63,12 +66,17 @@ def test_checks_raise_with_the_name_for_bad_concrete_values():
     assert _misc.check_integer(0, "continuation", "owner", minimum=0) == 0
     with pytest.raises(ValueError, match="owner: method must be one of"):
         _misc.check_choice("bisection", ("newton",), "method", "owner")
-    with pytest.raises(ValueError, match=r"owner: saveat must increase strictly within \[0, 2.0\]"):
+    with pytest.raises(ValueError, match=r"owner: saveat must be finite and increase strictly within \[0, 2.0\]"):
         _misc.increasing_within([0.0, 1.5, 1.0], 2.0, "saveat", "owner")
-    with pytest.raises(ValueError, match="owner: saveat must increase strictly within"):
+    with pytest.raises(ValueError, match="owner: saveat must be finite and increase strictly within"):
         _misc.increasing_within([0.0, 2.5], 2.0, "saveat", "owner")
-    with pytest.raises(ValueError, match="owner: saveat must increase strictly within"):
+    with pytest.raises(ValueError, match="owner: saveat must be finite and increase strictly within"):
         _misc.increasing_within([-0.1, 1.0], 2.0, "saveat", "owner")
+    with pytest.raises(ValueError, match="owner: saveat must be finite and increase strictly within"):
+        _misc.increasing_within([0.0, np.nan], 2.0, "saveat", "owner")
+    # The traced test: the same rule, one verdict per point of a batch.
+    batch = jnp.array([[0.0, 1.0], [0.0, np.nan], [1.0, 0.5], [0.0, 2.5]])
+    assert jax.vmap(lambda s: _misc.increases_within(s, 2.0))(batch).tolist() == [True, False, False, False]
     with pytest.raises(ValueError, match="owner: saveat must be a 1-d array"):
         _misc.increasing_within(np.ones((2, 2)), 2.0, "saveat", "owner")
     np.testing.assert_array_equal(_misc.increasing_within([0.0, 2.0 * (1 + 1e-13)], 2.0, "saveat", "owner", slack=1e-12),

@@ -26,7 +26,7 @@ from ._compile import filter_jit, outside_transformations
 from ._equilibria import HelixEquilibria
 from ._geometry import helix_centreline, helix_frame
 from ._lie import BodyVelocityTerm, CommutatorFreeRK4, MuntheKaasRK, RodState, check_rotation, tangent
-from ._misc import as_float, differentiated_part, float_dtype, increasing_within, is_concrete, no_gradient
+from ._misc import as_float, differentiated_part, float_dtype, increases_within, increasing_within, is_concrete, no_gradient
 from ._rod import check_one_rod
 from ._saved_points import diffeqsolve_saving
 from ._status import RESULTS, promote, raise_if_failed
@@ -366,6 +366,8 @@ def _start(n0, m0, length, frame0, x0, ts, outputs):
     invalid traced input (under `vmap`) replaced by a harmless problem and flagged."""
     with_frame, _, with_x = outputs
     valid = jnp.all(jnp.isfinite(n0)) & jnp.all(jnp.isfinite(m0)) & jnp.isfinite(length) & (length > 0)
+    if ts is not None:
+        valid = valid & increases_within(ts, length)
     length = jnp.where(valid, length, 1.0)
     if ts is not None:
         ts = jnp.where(valid, ts, jnp.linspace(0.0, 1.0, ts.shape[0], dtype=n0.dtype))

@@ -112,7 +112,10 @@ def finite_array(x: ArrayLike, name: str, owner: str, shape_tail: tuple[int, ...
     """`x` as a float array with trailing shape `shape_tail` (`as_float`: a NumPy array
     unless `x` is a JAX array); `ValueError` for another shape or for non-finite concrete
     values."""
-    a = as_float(x, float_dtype())
+    try:
+        a = as_float(x, float_dtype())
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{owner}: {name} must be numbers, got {x!r} ({error})") from None
     if a.ndim < len(shape_tail) or a.shape[a.ndim - len(shape_tail) :] != shape_tail:
         raise ValueError(f"{owner}: {name} must have trailing shape {shape_tail}, got {a.shape}")
     if is_concrete(a) and not np.all(np.isfinite(np.asarray(a))):
@@ -148,16 +151,21 @@ def column(x: ArrayLike, name: str, owner: str, n: int | None = None) -> np.ndar
 
 
 def increasing_within(s: ArrayLike, length: ArrayLike, name: str, owner: str, slack: float = 0.0) -> Array:
-    """Arc lengths `s` (1-d, non-empty) that increase strictly within $[0, L(1 + slack)]$;
-    checked when both are concrete."""
+    """Arc lengths `s` (1-d, non-empty) that are finite and increase strictly within
+    $[0, L(1 + slack)]$; checked when both are concrete (`increases_within` is the traced
+    test)."""
     s = as_float(s, float_dtype())
     if s.ndim != 1 or s.shape[0] < 1:
         raise ValueError(f"{owner}: {name} must be a 1-d array of arc lengths, got shape {s.shape}")
-    if is_concrete(s, length):
-        sn, ln = np.asarray(s), float(np.asarray(length))
-        if np.any(np.diff(sn) <= 0) or sn[0] < 0 or sn[-1] > ln * (1 + slack):
-            raise ValueError(f"{owner}: {name} must increase strictly within [0, {ln}]")
+    if is_concrete(s, length) and not bool(increases_within(np.asarray(s), float(np.asarray(length)), slack, xp=np)):
+        raise ValueError(f"{owner}: {name} must be finite and increase strictly within [0, {float(np.asarray(length))}]")
     return s
+
+
+def increases_within(s, length, slack: float = 0.0, xp=jnp):
+    """Whether arc lengths `s` (1-d, non-empty) are finite and increase strictly within
+    $[0, L(1 + slack)]$ (`xp`: the array namespace, `jax.numpy` for traced values)."""
+    return xp.all(xp.isfinite(s)) & xp.all(xp.diff(s) > 0) & (s[0] >= 0) & (s[-1] <= length * (1 + slack))
 
 
 def jacobian_forward(fn, x: Array, *, has_aux: bool = False, through_loops: bool = False):

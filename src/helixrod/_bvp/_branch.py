@@ -64,6 +64,11 @@ CORRECTOR_STEPS = 12
 #: its tangent and the determinant's sign (`linearised_equations`).
 JACOBIAN_STEPS_PER_RADIAN = 48
 
+#: A first point whose bordered Jacobian has a singular value below this fraction of its
+#: largest is not isolated (a continuum of equilibria, round-off from exactly singular:
+#: measured on a straight shaft between clamps its length apart, 4e-19 and 7e-19).
+NOT_ISOLATED = 1e-12
+
 #: Largest angle (cosine) between consecutive tangents: a sharper turn is a jump to another
 #: branch and the step is halved.
 SMALLEST_COSINE = 0.9
@@ -413,7 +418,18 @@ def follow_branch(
             problem = problem_at(sol.node_position, sol.node_frame)
             here, heading = first_point(sol.force, sol.moment0, problem)
     if not bool(here["converged"]):
-        raise ValueError(f"{owner}: the first point is not an equilibrium (residual above tolerance)")
+        # An equilibrium that is not isolated: the bordered Jacobian is singular (a second null
+        # direction), so no branch through it is a curve the corrector can follow.
+        J = np.asarray(here["jacobian"])
+        if np.all(np.isfinite(J)):
+            singular = np.linalg.svd(np.concatenate([J, np.asarray(heading)[None]], 0), compute_uv=False)
+            if singular[-1] <= NOT_ISOLATED * singular[0]:
+                raise ValueError(
+                    f"{owner}: the equilibria at the first point are not isolated (the branch's equations have a "
+                    "second null direction there: e.g. a straight inextensible rod between clamps exactly its length "
+                    "apart, whose axial force is undetermined); bring the ends closer or load the end (Loaded, Tweezer)"
+                )
+        raise ValueError(f"{owner}: Newton's corrector did not converge at the first point (residual above tolerance)")
     if switch is not None:
         # At the branch point the tangent and the determinant's sign are not defined: leave
         # along the bifurcating direction, and compare signs from the next point on.

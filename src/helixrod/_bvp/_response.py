@@ -186,8 +186,9 @@ def _observe(rod, length, kind, sol, bulk, v, hint):
     hint = jnp.where(kind == LOADED, hint, v[3])
     obs = jnp.where(sol.ok, axial_observables(rod, length, sol, hint), jnp.nan)
     # Each observable an output of its own: the curve's columns come out of its program,
-    # not from slices compiled one by one at its first call.
-    return tuple(obs), tuple(jnp.where(bulk.ok, bulk.observables, jnp.nan))
+    # not from slices compiled one by one at its first call.  The bulk prediction too is
+    # NaN where the input is invalid (a traced length <= 0: the bulk equations hold for any).
+    return tuple(obs), tuple(jnp.where(bulk.ok & sol.valid_input, bulk.observables, jnp.nan))
 
 
 def _independent_points(rod, length, kind, values, hints, options: BoundaryValueOptions, with_bulk: bool, guess):
@@ -206,7 +207,7 @@ def _independent_points(rod, length, kind, values, hints, options: BoundaryValue
         if hint is None:
             hint = jnp.where(bulk.ok, bulk.rotation, theta0)
         obs, bulk_obs = _observe(rod, length, kind, sol, bulk, v, hint)
-        return obs, bulk_obs, sol, bulk.ok
+        return obs, bulk_obs, sol, bulk.ok & sol.valid_input
 
     return jax.vmap(one)(values, hints)
 
@@ -323,7 +324,7 @@ def _continuation_points(rod, length, kind, values, options: BoundaryValueOption
         # A failed point does not spoil the warm start of the next one.
         bulk_guess = tree_where(bulk.ok, no_gradient((bulk.u, bulk.mu1, bulk.mu2)), bulk_guess)
         hint = jnp.where(sol.ok, obs[3], hint)
-        return (guess, bulk_guess, hint, v_from, sol.ok), (obs, bulk_obs, sol, bulk.ok)
+        return (guess, bulk_guess, hint, v_from, sol.ok), (obs, bulk_obs, sol, bulk.ok & sol.valid_input)
 
     return jax.lax.scan(step, carry, values)
 

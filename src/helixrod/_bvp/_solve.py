@@ -35,7 +35,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._compile import compile_ahead, jit, once_per_signature
 from .._geometry import unloaded_observables
 from .._kirchhoff import wrench_growth_rate
-from .._misc import finite_scalar, float_dtype, increasing_within, is_concrete, no_gradient, replaced, tree_where
+from .._misc import finite_scalar, float_dtype, increases_within, increasing_within, is_concrete, no_gradient, replaced, tree_where
 from .._rod import check_one_rod
 from .._status import RESULTS, SolverError, has_code, promote, raise_if_failed, succeeded
 from ._bulk import residual_scales
@@ -293,8 +293,12 @@ def solve(
         valid = valid & jnp.all(jnp.isfinite(guess[0])) & jnp.all(jnp.isfinite(guess[1]))
     elif isinstance(guess, WarmStart):
         valid = valid & jnp.all(jnp.isfinite(guess.force)) & jnp.all(jnp.isfinite(guess.moment0))
+    if saveat is not None:
+        valid = valid & increases_within(saveat, length, SAVEAT_SLACK)
     # Invalid input (under vmap): solve a harmless problem, return NaN.
     length = jnp.where(valid, length, 1.0)
+    if saveat is not None:
+        saveat = jnp.where(valid, saveat, jnp.linspace(0.0, 1.0, saveat.shape[0], dtype=saveat.dtype))
     harmless_start = unloaded_clamp(no_gradient(rod))
     start = tree_where(valid, start, harmless_start)
     end = tree_where(valid, end, end_condition(LOADED, point=jnp.zeros(3, dtype)))
@@ -378,6 +382,9 @@ _TURNS_HINT = (
     "; twist it there along a curve (`rotation_response`), warm-start from a solution with those turns, "
     "or use throw=False to take this one"
 )
+
+#: Relative slack of the last saved arc length beyond L (the round-off of a `linspace` to L).
+SAVEAT_SLACK = 1e-12
 
 _HINT = "; try continuation=, more segments=, a better guess=, or throw=False to inspect `result` and `residual`"
 
@@ -477,7 +484,7 @@ def solve_boundary_value(
     default_guess = guess is None
     guess, guess_kind = parse_guess(guess, owner)
     if saveat is not None:
-        saveat = increasing_within(saveat, length, "saveat", owner, slack=1e-12)
+        saveat = increasing_within(saveat, length, "saveat", owner, slack=SAVEAT_SLACK)
     if auto:
         if not is_concrete(rod, length, start, end, guess):
             raise ValueError(f"{owner}: segments='auto' needs concrete inputs (not under jax.jit or vmap)")

@@ -56,8 +56,8 @@ def force_extension_command(
     norm = math.sqrt(sum(x * x for x in u))
     if norm == 0:
         raise typer.BadParameter("--uhat must not be zero: the length is given in turns of the unloaded helix")
-    if not turns > 0:
-        raise typer.BadParameter(f"--turns must be > 0, got {turns}")
+    if not (math.isfinite(turns) and turns > 0):
+        raise typer.BadParameter(f"--turns must be finite and > 0, got {turns}")
     if moment is not None and rotation is not None:
         raise typer.BadParameter("give --moment or --rotation, not both")
     length = turns * 2 * math.pi / norm

@@ -75,6 +75,21 @@ def test_throw_false_reports_a_failure_in_ok():
     assert bool(good.ok) and good.result == hr.RESULTS.successful
 
 
+def test_the_straight_twisted_rod_at_its_bifurcation():
+    """At F = -K1 u3^2 (no moment) helices branch off the straight twisted rod, and the
+    balance's Jacobian is singular there: the straight rod is still the answer (the guess
+    is the root), under the force-moment pair that exposes it to the user at a plain force
+    grid; under force-rotation Newton's step lands on it and then meets the singular
+    Jacobian: the error says so."""
+    rod = hr.Rod(1.0, 1.0, 0.8, uhat=(0.0, 0.0, 1.0))
+    for force in (-1.0, -1.0 + 1e-6, -1.2):
+        bulk = hr.bulk_helix(rod, 2.0, force=force, moment=0.0)
+        np.testing.assert_allclose(bulk.u, [0.0, 0.0, 1.0], atol=1e-15)
+        np.testing.assert_allclose([bulk.extension, bulk.rotation], [2.0, 2.0], atol=1e-15)
+    with pytest.raises(hr.SolverError, match="singular Jacobian, a bifurcation of the uniform helices"):
+        hr.bulk_helix(rod, 1.0, force=-1.0, rotation=1.0)
+
+
 def test_frozen_root_derivatives_are_the_implicit_functions_to_second_order():
     """`bulk_helix_at(..., newton_derivatives=True)` (a Newton iteration without
     derivatives, then the implicit function theorem to any order): its first derivatives

@@ -26,10 +26,13 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._misc import finite_scalar, float_dtype, is_concrete, newton_iterations, no_gradient, solve_small, solve_small_linear
 from .._rod import check_one_rod
-from .._status import RESULTS, promote, raise_if_failed
+from .._status import RESULTS, has_code, promote, raise_if_failed
 from ._ends import AXIAL_OBSERVABLES, axial_controls
 
 _FORCE, _MOMENT = AXIAL_OBSERVABLES.index("force"), AXIAL_OBSERVABLES.index("moment")
+
+#: The largest scaled residual of a guess taken as the root where Newton's solve failed there.
+AT_ROOT = 1e-14
 
 
 def stiffness_scale(rod) -> Array:
@@ -256,12 +259,18 @@ def _root(residual, z0, args, *, max_steps, light, newton_derivatives, step_tole
         z = newton_iterations(lambda z: residual(z, frozen), z0, max_steps, tolerance=step_tolerance)
         if newton_derivatives:
             def newton_step(_, z):
-                return z - solve_small(jax.jacfwd(residual)(z, frozen), residual(z, frozen))
+                dz = solve_small(jax.jacfwd(residual)(z, frozen), residual(z, frozen))
+                return z - jnp.where(jnp.all(jnp.isfinite(dz)), dz, 0.0)  # a singular Jacobian: no step
 
             z = _implicit_root(residual, jax.lax.fori_loop(0, 2, newton_step, z), args)
         return z, RESULTS.successful
     sol = optx.root_find(residual, optx.Newton(rtol=1e-12, atol=1e-12), z0, args, max_steps=max_steps, throw=False)
-    return sol.value, promote(sol.result)
+    # A guess that is already the root where the Jacobian is singular (a bifurcation point:
+    # the straight twisted rod at F = -K1 u3^2) makes Newton's first linear solve fail; the
+    # guess is the answer there.
+    result = promote(sol.result)
+    failed_at_root = (result != RESULTS.successful) & jnp.all(jnp.abs(residual(z0, no_gradient(args))) <= AT_ROOT)
+    return jnp.where(failed_at_root, z0, sol.value), RESULTS.where(failed_at_root, RESULTS.successful, result)
 
 
 def bulk_helix(
@@ -301,4 +310,14 @@ def bulk_helix(
     values = jnp.stack([finite_scalar(given.get(n, 0.0), n, "bulk_helix") for n in AXIAL_OBSERVABLES])
     index = jnp.array([AXIAL_OBSERVABLES.index(n) for n in name.split("-")])
     bulk = bulk_helix_at(rod, length, index, values, guess, max_steps=max_steps)
-    return raise_if_failed(bulk, bulk.result, "bulk_helix") if throw else bulk
+    if not throw:
+        return bulk
+    singular = is_concrete(bulk.result) and bool(has_code(bulk.result, RESULTS.singular))
+    return raise_if_failed(bulk, bulk.result, "bulk_helix", _SINGULAR_HINT if singular else "")
+
+
+_SINGULAR_HINT = (
+    "\n(Here: Newton's method met a singular Jacobian, a bifurcation of the uniform helices -- e.g. the straight "
+    "twisted rod at F = -K1 u3^2, where helices branch off it; give guess=(u, mu1, mu2) on the branch wanted, "
+    "or move the controls off the bifurcation.)"
+)

@@ -367,7 +367,8 @@ def _start(n0, m0, length, frame0, x0, ts, outputs):
     with_frame, _, with_x = outputs
     valid = jnp.all(jnp.isfinite(n0)) & jnp.all(jnp.isfinite(m0)) & jnp.isfinite(length) & (length > 0)
     if ts is not None:
-        valid = valid & increases_within(ts, length)
+        # Repeats allowed: the shooting pieces integrate the save points clipped to them.
+        valid = valid & increases_within(ts, length, strict=False)
     length = jnp.where(valid, length, 1.0)
     if ts is not None:
         ts = jnp.where(valid, ts, jnp.linspace(0.0, 1.0, ts.shape[0], dtype=n0.dtype))

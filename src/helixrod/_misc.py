@@ -162,10 +162,13 @@ def increasing_within(s: ArrayLike, length: ArrayLike, name: str, owner: str, sl
     return s
 
 
-def increases_within(s, length, slack: float = 0.0, xp=jnp):
-    """Whether arc lengths `s` (1-d, non-empty) are finite and increase strictly within
-    $[0, L(1 + slack)]$ (`xp`: the array namespace, `jax.numpy` for traced values)."""
-    return xp.all(xp.isfinite(s)) & xp.all(xp.diff(s) > 0) & (s[0] >= 0) & (s[-1] <= length * (1 + slack))
+def increases_within(s, length, slack: float = 0.0, xp=jnp, strict: bool = True):
+    """Whether arc lengths `s` (1-d, non-empty) are finite and increase strictly (`strict`;
+    else repeats allowed) within $[0, L(1 + slack)]$ (`xp`: the array namespace, `jax.numpy`
+    for traced values)."""
+    steps = xp.diff(s)
+    increasing = xp.all(steps > 0) if strict else xp.all(steps >= 0)
+    return xp.all(xp.isfinite(s)) & increasing & (s[0] >= 0) & (s[-1] <= length * (1 + slack))
 
 
 def jacobian_forward(fn, x: Array, *, has_aux: bool = False, through_loops: bool = False):

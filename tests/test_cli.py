@@ -61,6 +61,8 @@ def test_cli_sweep(tmp_path):
         (["fit", "missing.csv"], "DATA: no such file: missing.csv"),
         (["fit", "EXAMPLE", "--plot", "fit.docx"], "--plot: cannot write a figure as .docx"),
         (["demo", "--out", "AFILE"], "--out: AFILE exists and is not a folder"),
+        (["sweep", "--kappa", "nan:3:5"], "--kappa: start and stop must be finite"),
+        (["sweep", "--tau=-3:inf:5"], "--tau: start and stop must be finite"),
     ],
 )
 def test_user_errors_are_usage_errors_before_any_computation(tmp_path, args, message):

@@ -139,7 +139,7 @@ def test_summary_save_and_load(noisy, tmp_path):
         assert all(isinstance(a, np.ndarray) for a in (f.covariance, f.correlation, f.residuals, f.start_costs))
         assert all(isinstance(v, np.float64) for v in (*f.params.values(), *f.stderr.values()))
         assert isinstance(f.identifiability.singular_values, np.ndarray) and isinstance(f.rod.K1, jax.Array)
-    with pytest.raises(ValueError, match="propagate needs a fit from fit_stiffness"):
+    with pytest.raises(ValueError, match="propagate needs the problem of a fit from fit_stiffness in this session"):
         back.propagate(lambda rod, p: rod.K1)
     (tmp_path / "other.json").write_text('{"a": 1}')
     with pytest.raises(ValueError, match="not a fit written by StiffnessFit.save"):

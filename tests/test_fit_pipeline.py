@@ -88,6 +88,8 @@ def test_bad_options_give_documented_errors():
         hr.fit_stiffness(data, solver="newton")
     with pytest.raises(ValueError, match="either uhat"):
         hr.fit_stiffness(data, uhat=(0, 0, 0), fit_uhat=True)
+    with pytest.raises(ValueError, match=r"fix: uhat1 = 2.0 contradicts uhat= \[1.0, 0.0, 0.0\]"):
+        hr.fit_stiffness(data, uhat=(1, 0, 0), fix={"uhat1": 2.0})
     with pytest.raises(ValueError, match="unknown parameter"):
         hr.fit_stiffness(data, fix={"K4": 1.0})
     with pytest.raises(ValueError, match="positive definite"):

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._compile import filter_jit
+from ._misc import is_concrete
 from ._equilibria import helix_equilibria
 from ._roots import NUM_SLOTS
 from ._rod import Rod
@@ -18,7 +22,9 @@ class LoadedHelices(eqx.Module):
 
     `kappa`, `tau`, `phi`, `slot` (the `helix_equilibria` slot: 0 global minimum of the
     energy on the circle, ...), `force`, `moment` (as recomputed at the solution), `energy`,
-    `stable`; all NaN / False in unused rows.  `count` is the number of helices found.
+    `stable`; all NaN / False in unused rows.  `count` is the number of helices found;
+    `valid_input` False where the wrench was not finite (traced: concrete ones raise), its
+    count 0 not a finding.
     """
 
     kappa: Float[Array, " k"]
@@ -31,6 +37,7 @@ class LoadedHelices(eqx.Module):
     stable: Bool[Array, " k"]
     valid: Bool[Array, " k"]
     count: Int[Array, ""]
+    valid_input: Bool[Array, ""]
 
 
 def helices_under_load(
@@ -59,6 +66,8 @@ def helices_under_load(
     if grid < 2 or max_solutions < 1:
         raise ValueError("grid must be >= 2 and max_solutions >= 1")
     tau_lo, tau_hi = float(tau_range[0]), float(tau_range[1])
+    if not all(math.isfinite(x) for x in (float(kappa_max), tau_lo, tau_hi)):
+        raise ValueError(f"helices_under_load: kappa_max and tau_range must be finite; got {kappa_max}, {tau_range}")
     if not (kappa_max > 0 and tau_hi > tau_lo):
         raise ValueError(f"need kappa_max > 0 and tau_range[1] > tau_range[0]; got {kappa_max}, {tau_range}")
     dtype = jnp.result_type(float)
@@ -66,6 +75,8 @@ def helices_under_load(
     M0 = jnp.asarray(moment, dtype)
     if F0.ndim or M0.ndim:
         raise ValueError("force and moment must be scalars (use jax.vmap for many)")
+    if is_concrete(F0, M0) and not (np.isfinite(float(F0)) and np.isfinite(float(M0))):
+        raise ValueError(f"helices_under_load: force and moment must be finite; got {float(F0)}, {float(M0)}")
     box = jnp.asarray([kappa_max, tau_lo, tau_hi], dtype)
     return _under_load(rod, F0, M0, box, grid, newton_steps, max_solutions, rtol)
 
@@ -169,4 +180,5 @@ def _under_load(rod, F0, M0, box, grid, newton_steps, max_solutions, rtol):
         stable=valid & pick(sol.stable),
         valid=valid,
         count=jnp.sum(valid),
+        valid_input=jnp.isfinite(F0) & jnp.isfinite(M0),
     )

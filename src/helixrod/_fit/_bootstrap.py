@@ -80,7 +80,7 @@ def bootstrap(
     the last batch padded); the replicates are the same either way.
     """
     if fit.problem is None:
-        raise ValueError("bootstrap needs a fit from fit_stiffness (not fit_stiffness_linear)")
+        raise ValueError("bootstrap needs the problem of a fit from fit_stiffness in this session (a fit_stiffness_linear result or a StiffnessFit.load-ed one has none)")
     if kind not in KINDS:
         raise ValueError(f"kind must be 'cases' or 'parametric', got {kind!r}")
     if n < 2:

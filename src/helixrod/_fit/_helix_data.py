@@ -18,6 +18,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import re
 from pathlib import Path
 
 import equinox as eqx
@@ -101,6 +102,14 @@ _MAY_BE_EMPTY = ("force", "moment", "force_sigma", "moment_sigma")
 def measured(values: Array) -> Array:
     """The mask of the measured entries of a data column (a missing value is NaN)."""
     return ~jnp.isnan(values)
+
+
+def _is_number(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
 
 
 class HelixData(eqx.Module):
@@ -351,11 +360,11 @@ class HelixData(eqx.Module):
         units = {}
         if body:
             first = next(csv.reader([body[0][1]]))
-            try:
-                float(first[0])
-            except ValueError:
+            # A units line has a cell that is text, not a number; a data row may begin with an
+            # empty cell (a force not measured there).
+            if any(cell.strip() and not _is_number(cell) for cell in first):
                 if len(first) != len(names):
-                    raise ValueError(f"{path}:{body[0][0]}: units line has {len(first)} cells, header has {len(names)}") from None
+                    raise ValueError(f"{path}:{body[0][0]}: units line has {len(first)} cells, header has {len(names)}")
                 units = {n: u.strip() for n, u in zip(names, first)}
                 body = body[1:]
         values = np.empty((len(body), len(names)))
@@ -391,21 +400,28 @@ class HelixData(eqx.Module):
         if needed:
             raise ValueError(f"{path}: {' and '.join(needed)} needed (as columns or arguments)")
         fs, ms = (1.0 if x is None else x for x in (fs, ms))  # of a quantity not measured: never read
-        return cls(
-            col.get("force"),
-            col.get("moment"),
-            col["kappa"],
-            col["tau"],
-            fs,
-            ms,
-            kappa_sigma=col.get("kappa_sigma"),
-            tau_sigma=col.get("tau_sigma"),
-            kappa_tau_correlation=col.get("kappa_tau_correlation"),
-            register=col.get("register"),
-            register_sigma=col.get("register_sigma"),
-            units=units,
-            convention=convention,
-        )
+        try:
+            return cls(
+                col.get("force"),
+                col.get("moment"),
+                col["kappa"],
+                col["tau"],
+                fs,
+                ms,
+                kappa_sigma=col.get("kappa_sigma"),
+                tau_sigma=col.get("tau_sigma"),
+                kappa_tau_correlation=col.get("kappa_tau_correlation"),
+                register=col.get("register"),
+                register_sigma=col.get("register_sigma"),
+                units=units,
+                convention=convention,
+            )
+        except ValueError as error:
+            # The checks count data rows from 0; the file's lines are what the user sees.
+            rows = re.search(r"rows \[([\d, ]*)\]", str(error))
+            lines = [body[int(r)][0] for r in rows.group(1).split(",") if r.strip()] if rows else []
+            where = f" (file lines {lines}; data rows counted from 0)" if lines else ""
+            raise ValueError(f"{path}: {error}{where}") from None
 
     def to_csv(self, path: str | Path | None = None, *, comment: str | None = None) -> str:
         """Write the data as CSV (header line, units line, one row per helix; values with

@@ -245,6 +245,8 @@ def resolve_fixed(
         if uh.shape != (3,) or not np.all(np.isfinite(uh)):
             raise ValueError(f"uhat must be three finite numbers, got {uhat!r}")
         for i, n in enumerate(TWIST_NAMES):
+            if uhat is not None and n in fixed and fixed[n] != float(uh[i]):
+                raise ValueError(f"fix: {n} = {fixed[n]} contradicts uhat= {np.asarray(uhat, float).tolist()}; give one of them")
             fixed.setdefault(n, float(uh[i]))
     if isotropic:
         if "K1" in fixed and "K2" in fixed and fixed["K1"] != fixed["K2"]:

@@ -155,7 +155,7 @@ class StiffnessFit(eqx.Module):
         own (the function is new to it), traced once for values and Jacobian and compiled to
         run once (`_compile.RUN_ONCE_OPTIONS`): that example (30 forces, one core) 14 -> 6 s."""
         if self.problem is None:
-            raise ValueError("propagate needs a fit from fit_stiffness (not fit_stiffness_linear)")
+            raise ValueError("propagate needs the problem of a fit from fit_stiffness in this session (a fit_stiffness_linear result or a StiffnessFit.load-ed one has none)")
         param = self.problem.parameterisation
         q = jnp.asarray([float(self.params[n]) for n in self.names])
         fixed_extra = {e.name: v for e, v in zip(param.extra, param.extra_values) if e.name not in param.extra_free}

@@ -67,7 +67,7 @@ def profile_likelihood(
     `level` from the crossings of $\\chi^2_{1,level}$ (linear interpolation between grid
     points).  Same model, data, solver and other fixed parameters as the fit."""
     if fit.problem is None:
-        raise ValueError("profile_likelihood needs a fit from fit_stiffness (not fit_stiffness_linear)")
+        raise ValueError("profile_likelihood needs the problem of a fit from fit_stiffness in this session (a fit_stiffness_linear result or a StiffnessFit.load-ed one has none)")
     if name not in fit.names:
         raise ValueError(f"profile_likelihood: {name!r} is not a free parameter of the fit; free: {fit.names}")
     if not 0 < level < 1:

@@ -51,6 +51,8 @@ def grid(text: str, name: str) -> np.ndarray:
         raise typer.BadParameter(f"{name} must be start:stop:num, e.g. 0:3:1000, got {text!r}") from None
     if len(parts) != 3 or num < 1:
         raise typer.BadParameter(f"{name} must be start:stop:num with num >= 1, got {text!r}")
+    if not (np.isfinite(start) and np.isfinite(stop)):
+        raise typer.BadParameter(f"{name}: start and stop must be finite, got {text!r}")
     return np.linspace(start, stop, num)
 
 

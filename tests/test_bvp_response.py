@@ -126,8 +126,10 @@ def test_force_extension_command(tmp_path, monkeypatch):
     assert "0 did not converge, 1 hold other whole turns than the rotation held" in text
     # The stability of each point, and a fold that ends the branch: the points beyond it did
     # not converge for want of an equilibrium, not of shooting pieces (a fold placed by hand).
-    curve = json.loads(out.read_text())
+    # Standard JSON (no Infinity or NaN constants): a point of no critical force is "nan".
+    curve = json.loads(out.read_text(), parse_constant=lambda c: pytest.fail(f"non-standard JSON constant {c}"))
     assert curve["instability_index"] == [0, 0, 0, 0] and curve["critical_kind"] == "none"
+    assert curve["critical_force"] == "nan"
     assert "stable" in result.output and "loses stability" not in result.output
 
     def folded(*args, **kwargs):

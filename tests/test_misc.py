@@ -416,3 +416,18 @@ def test_tree_where_chooses_whole_trees_per_condition():
     batched = jax.vmap(lambda f: _misc.tree_where(f, new, old))(flags)
     np.testing.assert_array_equal(batched[0], np.stack([np.arange(3.0), np.zeros(3)]))
     np.testing.assert_array_equal(batched[1]["m"], np.stack([np.eye(2), np.zeros((2, 2))]))
+
+
+def test_json_text_is_standard_json_and_reads_back():
+    import json
+    import math
+
+    record = {"stderr": {"K1": math.inf, "K2": 0.5}, "values": [1.0, -math.inf, math.nan], "name": "fit", "n": 3}
+    text = _misc.json_text(record)
+    strict = json.loads(text, parse_constant=lambda c: pytest.fail(f"non-standard JSON constant {c}"))
+    assert strict["stderr"]["K1"] == "inf" and strict["values"][1:] == ["-inf", "nan"]
+    back = _misc.json_record(text)
+    assert back["stderr"] == {"K1": math.inf, "K2": 0.5} and back["name"] == "fit" and back["n"] == 3
+    assert back["values"][:2] == [1.0, -math.inf] and math.isnan(back["values"][2])
+    # Files written before (Python's Infinity and NaN constants) read too.
+    assert _misc.json_record(json.dumps(record))["stderr"]["K1"] == math.inf

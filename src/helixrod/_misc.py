@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import json
 import math
 
 import equinox as eqx
@@ -553,6 +554,43 @@ def chi2_survival(statistic: float, dof: float) -> float:
         if abs(d * c - 1.0) < eps:
             break
     return prefactor * fraction
+
+
+#: How `json_text` writes the non-finite floats that JSON has no numbers for.
+_NON_FINITE = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}
+
+
+def json_text(record, indent: int = 1) -> str:
+    """`record` (dicts, lists and numbers) as standard JSON text (RFC 8259): its non-finite
+    floats as the strings "inf", "-inf" and "nan" -- Python's `json` would write `Infinity`
+    and `NaN`, which strict readers (jq, JavaScript) reject; `json_record` reads them back."""
+
+    def encode(x):
+        if isinstance(x, float) and not math.isfinite(x):
+            return "nan" if math.isnan(x) else ("inf" if x > 0 else "-inf")
+        if isinstance(x, dict):
+            return {k: encode(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [encode(v) for v in x]
+        return x
+
+    return json.dumps(encode(record), indent=indent, allow_nan=False)
+
+
+def json_record(text: str):
+    """The record of `json_text` (its "inf", "-inf" and "nan" strings as floats; files with
+    JSON's non-standard `Infinity` and `NaN` read too).  `json.JSONDecodeError` if not JSON."""
+
+    def decode(x):
+        if isinstance(x, str):
+            return _NON_FINITE.get(x, x)
+        if isinstance(x, dict):
+            return {k: decode(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return [decode(v) for v in x]
+        return x
+
+    return decode(json.loads(text))
 
 
 def write_atomically(path, write, *, binary: bool = True) -> None:

@@ -23,7 +23,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
 from .._compile import compile_ahead, filter_jit, jit, once_per_signature, split_arrays
-from .._misc import is_concrete, write_atomically
+from .._misc import is_concrete, json_record, json_text, write_atomically
 from .._progress import ProgressArgument, batch_size, check_progress, padded_batch, progress_bar, scan_in_batches
 from .._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
 from .._status import RESULTS, message, promote, raise_if_failed, result_from_name, result_name, succeeded
@@ -227,14 +227,14 @@ class StiffnessFit(eqx.Module):
         if clash:
             raise ValueError(f"StiffnessFit.save: extra entries {clash} would overwrite the fit's own")
         record.update(extra or {})
-        text = json.dumps(record, indent=1)
+        text = json_text(record)
         write_atomically(path, lambda f: f.write(text), binary=False)
 
     @classmethod
     def load(cls, path) -> StiffnessFit:
         """A fit written by `save`."""
         try:
-            record = json.loads(Path(path).read_text())
+            record = json_record(Path(path).read_text())
         except json.JSONDecodeError as error:
             raise ValueError(f"StiffnessFit.load: {path} is not JSON ({error})") from None
         if not isinstance(record, dict) or record.get("format") != SAVE_FORMAT:

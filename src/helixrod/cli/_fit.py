@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import jax
@@ -10,7 +9,7 @@ import typer
 from rich.console import Console
 
 from .. import MODEL_CLASSES, HelixData, compare_models, fit_stiffness
-from .._misc import write_atomically
+from .._misc import json_text, write_atomically
 from ..plot import plot_fit, plot_model_comparison
 from ._numbers import assignments, numbers
 from ._paths import input_file, output_file, read_with_notes
@@ -85,7 +84,7 @@ def fit(
     if compare:
         print_comparison(console, result)
         if out is not None:
-            text = json.dumps(result.to_dict(), indent=1)
+            text = json_text(result.to_dict())
             write_atomically(out, lambda f: f.write(text), binary=False)
             console.print(f"wrote {out}")
         if plot is not None:

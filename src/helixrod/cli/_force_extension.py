@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
@@ -14,7 +13,7 @@ from rich.console import Console
 from rich.table import Table
 
 from .. import RESULTS, force_extension
-from .._misc import write_atomically
+from .._misc import json_text, write_atomically
 from .._status import has_code
 from ..plot import plot_response
 from ._numbers import grid, rod_option
@@ -104,7 +103,7 @@ def force_extension_command(
     console.print(f"{force_values.size} points in {seconds:.2f} s (compilation included); {summary}")
     if out is not None:
         fields = {f: np.asarray(getattr(curve, f)).tolist() for f in CURVE_FIELDS}
-        text = json.dumps({"length": length, **fields, "critical_force": critical, "critical_kind": curve.critical_kind}, indent=1)
+        text = json_text({"length": length, **fields, "critical_force": critical, "critical_kind": curve.critical_kind})
         write_atomically(out, lambda f: f.write(text), binary=False)
         console.print(f"wrote {out}")
     if plot is not None:

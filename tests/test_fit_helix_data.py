@@ -80,6 +80,27 @@ def test_csv_units_are_converted_or_kept_as_labels(tmp_path):
         hr.HelixData.from_csv(grads)
 
 
+def test_csv_first_row_units_and_file_lines(tmp_path):
+    header = "force,moment,kappa,tau,force_sigma,moment_sigma\n"
+    # A first data row that begins with an empty cell (no force measured) is data, not units.
+    path = tmp_path / "a.csv"
+    path.write_text(header + ",1.0,0.5,0.3,0.1,0.1\n2.0,1.5,0.6,0.4,0.1,0.1\n")
+    data = hr.HelixData.from_csv(path)
+    assert len(data) == 2 and data.units == {} and np.isnan(data.force[0]) and data.moment[0] == 1.0
+    path.write_text(header + ",,1,1,1,1\n2.0,1.5,0.6,0.4,0.1,0.1\n")
+    with pytest.raises(ValueError, match="observe neither force nor moment"):
+        hr.HelixData.from_csv(path)
+    # The checks of the values name the file's lines (comments and blank lines counted).
+    path.write_text("# a comment\n" + header + "\n1.0,1.0,0.5,0.3,0.1,0.1\n2.0,1.5,-1,0.4,0.1,0.1\n")
+    with pytest.raises(ValueError, match=r"kappa must be > 0.*rows \[1\] are not \(file lines \[5\]"):
+        hr.HelixData.from_csv(path)
+    # An unstated register sigma is in its register's unit.
+    path.write_text("force,moment,kappa,tau,force_sigma,moment_sigma,register,register_sigma\n"
+                    "pN,pN nm,1/nm,1/nm,pN,pN nm,deg,-\n1.0,1.0,0.5,0.3,0.1,0.1,90,1\n")
+    data = hr.HelixData.from_csv(path)
+    np.testing.assert_allclose([data.register[0], data.register_sigma[0]], [np.pi / 2, np.pi / 180], rtol=1e-12)
+
+
 def test_csv_extra_columns_are_ignored_with_a_warning_or_strict_errors(tmp_path):
     path = tmp_path / "extra.csv"
     path.write_text("force,moment,kappa,tau,temperature,force_sigma,moment_sigma\n1,2,1,0.5,298,0.1,0.1\n")

@@ -67,7 +67,9 @@ def _unit_factors(units: dict[str, str], where: str) -> tuple[dict[str, float], 
         if name in physical:
             factors[name], converted[name] = _PHYSICAL[kind][unit], _INTERNAL_UNITS[kind]
         elif kind == "register":
-            unit = "rad" if unit in ("", "-") else unit  # an angle without a stated unit is in radians
+            if unit in ("", "-"):  # unstated: a sigma in its register's unit, else radians
+                unit = units.get("register", "rad") if name == "register_sigma" else "rad"
+                unit = "rad" if unit in ("", "-") else unit
             if unit not in ANGLE_UNITS:
                 raise ValueError(f"{where}: unknown unit {unit!r} for column {name}; allowed: {list(ANGLE_UNITS)}")
             factors[name], converted[name] = ANGLE_UNITS[unit], "rad"
@@ -129,8 +131,10 @@ class HelixData(eqx.Module):
     `kappa_tau_correlation` (their correlation coefficient, in $[-1, 1]$; e.g. $\\kappa$ and
     $\\tau$ computed from the same two noisy observables),
     `register` $\\varphi$ of each helix if it was observed, and `register_sigma`
-    (then the fit also matches $\\varphi$).  `units` maps column names to unit strings
-    (free text, carried to and from CSV, never converted).
+    (then the fit also matches $\\varphi$).  `units` maps column names to unit strings,
+    carried to CSV as given (this constructor never converts; `from_csv` converts physical
+    units on a units line to pN, pN nm, 1/nm and rad, so data written in, e.g., N come back
+    in pN, with their units saying so).
 
     Units must be consistent: with force in [F] and twists in [1/L], moments are in [F L]
     and the fitted stiffnesses in [F L^2].
@@ -332,7 +336,7 @@ class HelixData(eqx.Module):
         (`kappa`, `tau` and one of `force`, `moment` are required; the sigma columns may
         instead be given as arguments, which then override).  An empty (or `nan`) cell of
         `force` or `moment`, or of its sigma, means not measured at that point.  The next line may be a units line: same columns, unit strings; it is
-        recognised by its first cell not being a number.  Physical units (force pN, fN,
+        recognised by a cell that is text, not a number.  Physical units (force pN, fN,
         nN, N; moment pN nm, N m, ...; curvature and torsion 1/nm, 1/um, 1/m, ...; register
         rad or deg) are converted to pN, pN nm, 1/nm and rad, so the fitted stiffness is in
         pN nm^2; labels that are not physical units (`K1/L^2, K1/L, 1/L, 1/L` for data in

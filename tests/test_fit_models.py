@@ -36,7 +36,7 @@ def test_helix_residuals_are_the_normalised_errors_of_the_chosen_registers(noisy
     the observation in sigma units, the default branch)."""
     rod, data, fit = noisy
     assert fit.ok, fit.message
-    assert set(fit.predicted) == {"force", "moment", "register", "slot"}
+    assert set(fit.predicted) == {"force", "moment", "register", "slot", "stable"}
     slot = np.asarray(fit.predicted["slot"])
     eq = hr.helix_equilibria(fit.rod, data.kappa, data.tau)  # the shapes of synthetic_helix_data: compiled
     rows = np.arange(len(data))
@@ -45,6 +45,7 @@ def test_helix_residuals_are_the_normalised_errors_of_the_chosen_registers(noisy
     np.testing.assert_allclose(fit.predicted["force"], F, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(fit.predicted["moment"], M, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(fit.predicted["register"], phi, rtol=1e-12, atol=1e-14)
+    np.testing.assert_array_equal(fit.predicted["stable"], np.asarray(eq.stable)[rows, slot])
     F_obs, M_obs = np.asarray(data.force), np.asarray(data.moment)
     sF, sM = np.asarray(data.force_sigma), np.asarray(data.moment_sigma)
     expected = np.concatenate([(F - F_obs) / sF, (M - M_obs) / sM])
@@ -77,7 +78,7 @@ def test_solver_objects(noisy):
     adam = hr.fit_stiffness(small, uhat=rod.uhat, solver=ADAM, n_starts=1, max_steps=8)
     assert adam.method == "OptaxMinimiser" and adam.n_steps == 8 and np.isfinite(adam.cost)
     assert adam.result == hr.RESULTS.nonlinear_max_steps_reached and "OptaxMinimiser, 8 steps" in adam.message
-    assert len(adam.residuals) == 6 and set(adam.predicted) == {"force", "moment", "register", "slot"}
+    assert len(adam.residuals) == 6 and set(adam.predicted) == {"force", "moment", "register", "slot", "stable"}
     with pytest.raises(ValueError, match="apply to solvers given by name"):
         hr.fit_stiffness(data, solver=optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12), rtol=1e-8)
     with pytest.raises(ValueError, match="apply to solvers given by name"):

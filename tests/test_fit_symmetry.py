@@ -80,3 +80,19 @@ def test_symmetric_case_reports_symmetry_and_null_direction(rng):
     assert any("K1 and K2 agree" in note for note in ident.notes)
     # what is determined is still determined: |(K13, K23)|
     np.testing.assert_allclose(np.hypot(fit.params["K13"], fit.params["K23"]), np.hypot(0.3, 0.2), rtol=1e-6)
+
+
+@pytest.mark.heavy
+def test_a_fit_notes_helices_matched_to_unstable_registers():
+    """K1 = K2 with bend-twist couplings: the nearest-register rule matches some noisy
+    helices to unstable registers, which absorb the noise (K1 0.80 +- 0.008 here against
+    1.0); the report says so and points to branch='stable', whose fit has no such point."""
+    rod = hr.Rod(1.0, 1.0, 0.8, K13=0.3, K23=0.2)
+    rng = np.random.default_rng(0)
+    kappa, tau = rng.uniform(0.3, 2.5, 20), rng.uniform(-1.5, 2.0, 20)
+    data = hr.synthetic_helix_data(rod, kappa, tau, 0.01, jax.random.key(16))
+    nearest = hr.fit_stiffness(data)
+    assert not np.all(nearest.predicted["stable"])
+    assert any("matched to registers that are not stable" in note and "branch='stable'" in note for note in nearest.identifiability.notes)
+    stable = hr.fit_stiffness(data, branch="stable")
+    assert np.all(stable.predicted["stable"]) and not any("not stable" in note for note in stable.identifiability.notes)

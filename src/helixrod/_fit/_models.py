@@ -79,6 +79,12 @@ class AbstractForwardModel(eqx.Module):
         it out of its residuals, degrees of freedom and error analysis."""
         return None
 
+    def observation_count(self) -> int | None:
+        """The number of observations (residuals the fit keeps), where known without
+        evaluating the model (`None` otherwise): the early stop of the default multistart
+        checks a best cost against it."""
+        return None
+
     def jacobian_and_predictions(self, q: Array, param) -> tuple[Array, tuple[Array, dict[str, Array]]]:
         """`(J, (r, predicted))`: the Jacobian of the residuals in the free physical values
         `q` of the parameterisation `param`, with any moving sigmas (`moving_sigmas`) held
@@ -239,7 +245,8 @@ class HelixModel(AbstractForwardModel):
                 distance = jnp.where(jnp.any(eq.stable, axis=-1, keepdims=True), stable, distance)
             slot = jnp.argmin(distance, axis=-1)
         take = lambda x: jnp.take_along_axis(x, slot[:, None], axis=1)[:, 0]  # noqa: E731
-        predicted = {"force": take(eq.force), "moment": take(eq.moment), "register": take(eq.phi), "slot": slot}
+        predicted = {"force": take(eq.force), "moment": take(eq.moment), "register": take(eq.phi), "slot": slot,
+                     "stable": take(eq.stable)}
         if self.errors_in_variables:
             predicted["residual_covariance"] = jnp.stack([take(c) for c in covariance], axis=-1)
         return jnp.concatenate([take(r) for r in residuals]), predicted
@@ -303,11 +310,18 @@ class HelixModel(AbstractForwardModel):
         floor = max(abs(B), abs(C), 1e-300) * 1e-2
         return max(B, floor), max(C, floor)
 
-    def observed_residuals(self):
+    def _observation_masks(self) -> list[np.ndarray]:
         masks = [np.asarray(self.force_observed), np.asarray(self.moment_observed)]
         if self.use_register and self.register_sigma is not None:
             masks.append(np.ones(self.kappa.shape, bool))
+        return masks
+
+    def observed_residuals(self):
+        masks = self._observation_masks()
         return None if all(m.all() for m in masks) else np.concatenate(masks)
+
+    def observation_count(self):
+        return int(sum(m.sum() for m in self._observation_masks()))
 
     def twist_scale(self, p0):
         return float(np.median(np.hypot(np.asarray(self.kappa), np.asarray(self.tau))))

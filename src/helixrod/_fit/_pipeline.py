@@ -23,13 +23,13 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
 from .._compile import compile_ahead, filter_jit, jit, once_per_signature, split_arrays
-from .._misc import is_concrete, json_record, json_text, write_atomically
+from .._misc import chi2_survival, is_concrete, json_record, json_text, write_atomically
 from .._progress import ProgressArgument, batch_size, check_progress, padded_batch, progress_bar, scan_in_batches
 from .._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
 from .._status import RESULTS, message, promote, raise_if_failed, result_from_name, result_name, succeeded
 from ._models import AbstractForwardModel, forward_model
 from ._parameters import Parameterisation, extra_start, resolve_fixed, start_vector
-from ._report import ErrorAnalysis, Identifiability, error_analysis
+from ._report import POOR_FIT_P_VALUE, ErrorAnalysis, Identifiability, error_analysis
 from ._solvers import SOLVERS, final_residuals, make_solver, with_materialised_jacobian
 from ._stepwise import HELD_WEIGHTS_ROUNDS, compile_steps_ahead, steppable, stepwise_least_squares
 from ._symmetry import canonical, closest_in_orbit, symmetries
@@ -63,8 +63,9 @@ class StiffnessFit(eqx.Module):
     `residuals` normalised, of the observations only (helix data: the F residuals of the
     points with a measured force, then the M residuals of those with a measured moment,
     then registers if fitted).  `predicted`: the model's predictions of the observed quantities
-    by name -- helix data: `force`, `moment`, `register` and `slot` (the register slot of
-    `helix_equilibria` used per point), with errors in variables also
+    by name -- helix data: `force`, `moment`, `register`, `slot` (the register slot of
+    `helix_equilibria` used per point) and `stable` (whether that register is; the report
+    notes points matched to unstable ones), with errors in variables also
     `residual_covariance` (n, 3: var F, cov FM, var M of the effective covariance that
     whitens each point's pair); end responses: the two measured responses;
     shapes: `points`; tweezer data: `extension` (with the offsets), `torque`, `phase`, `ok`
@@ -629,7 +630,8 @@ def fit_stiffness(
         if stepwise:
             solved = _stepwise_multistart(z0s, model, param, solver, int(max_steps), report)
         elif adaptive:
-            solved = _adaptive_multistart(z0s, model, param, solver, int(max_steps), batching, report)
+            plausible = _plausible_cost(model, param, absolute_sigma)
+            solved = _adaptive_multistart(z0s, model, param, solver, int(max_steps), batching, report, plausible)
             report.advance(n_starts - report.done)  # the starts left out by the early stop
         elif report.shown:
             solve = lambda _, batch: (None, _multistart(batch, model, param, solver, int(max_steps), batching))  # noqa: E731
@@ -690,15 +692,29 @@ ADAPTIVE_AGREE = 2
 SCREEN_STEPS = 48
 
 
-def _adaptive_multistart(z0s, model, param, solver, max_steps: int, batching: str, report):
+def _plausible_cost(model, param, absolute_sigma: bool):
+    """`cost -> bool`: whether a best cost is consistent with the data's sigmas, its
+    $\\chi^2$ p-value at least `POOR_FIT_P_VALUE` (the report's "does not describe the data"
+    threshold); always true where the sigmas are not trusted or the model does not know
+    its number of observations."""
+    m = model.observation_count()
+    dof = 0 if m is None else m - len(param.names)
+    if not absolute_sigma or dof <= 0:
+        return lambda cost: True
+    return lambda cost: bool(np.isfinite(cost)) and chi2_survival(2.0 * float(cost), dof) >= POOR_FIT_P_VALUE
+
+
+def _adaptive_multistart(z0s, model, param, solver, max_steps: int, batching: str, report, plausible=lambda cost: True):
     """The starts `z0s` (NumPy) solved in batches with early stopping (`ADAPTIVE_BATCH`,
     `SCREEN_STEPS`, `ADAPTIVE_AGREE`): what `_multistart` returns, of the starts solved.
     A start cut short by the screening budget counts where it agrees with the best; the
-    best start, if cut short, is then solved on from where it stopped with the full budget."""
+    best start, if cut short, is then solved on from where it stopped with the full budget.
+    Starts that agree on a best cost that is not `plausible` (a minimum that does not
+    describe the data: two starts may agree on a wrong one) do not stop it."""
     total = int(z0s.shape[0])
     size = min(ADAPTIVE_BATCH, total)
     screen = min(SCREEN_STEPS, max_steps)
-    parts, done = [], 0
+    parts, done, agreed = [], 0, None
     while done < total:
         out = _multistart(padded_batch(z0s, done, size), model, param, solver, screen, batching)
         stop = min(done + size, total)
@@ -708,11 +724,18 @@ def _adaptive_multistart(z0s, model, param, solver, max_steps: int, batching: st
         solved = jax.tree.map(lambda *a: np.concatenate(a), *parts)
         best, count, _ = _agreement(solved[4], solved[1], model, param, solved[2])
         if count >= ADAPTIVE_AGREE:
-            break
+            if plausible(solved[1][best]):
+                break
+            agreed = agreed or (solved, best)
     else:
-        if screen < max_steps:  # no two starts agreed within the screening budget: all with the full one
+        if agreed is not None:
+            # No start found a minimum that describes the data: the model does not, and the
+            # first agreement stands (as without the check).
+            solved, best = agreed
+        elif screen < max_steps:  # no two starts agreed within the screening budget: all with the full one
             return _multistart(z0s, model, param, solver, max_steps, batching)
-        return solved
+        else:
+            return solved
     if screen < max_steps and not succeeded(solved[2])[best]:
         z, cost, result, steps, p, q = _multistart(solved[0][best:best + 1], model, param, solver, max_steps, batching)
         # LM accepts steps at round-off, so the same minimum may come back a little higher.
@@ -823,20 +846,34 @@ def _agreement(p_all, cost, model, param, results):
 
 
 def _flagged_points(predicted) -> list[str]:
-    """A note naming the data points the forward model flags at the fit (`predicted["ok"]`
-    false, as a tweezer model's points outside its range): their residuals use the values
-    the model computes there, which the fit cannot tell from others."""
-    ok = predicted.get("ok") if isinstance(predicted, Mapping) else None
-    if ok is None:
+    """Notes on data points the fit matched where a measured one is unlikely to be: flagged
+    by the forward model (`predicted["ok"]` false, as a tweezer model's points outside its
+    range: their residuals use the values the model computes there), or matched to a
+    register that is not stable (`predicted["stable"]` false: the nearest register, a local
+    maximum or saddle of the energy on the circle, can absorb noise -- and so fit a
+    stiffness that only such registers feel, with error bars that do not see the choice)."""
+    if not isinstance(predicted, Mapping):
         return []
-    bad = np.flatnonzero(~np.asarray(ok, bool))
-    if bad.size == 0:
-        return []
-    return [
-        f"{bad.size} of {np.size(ok)} data points are flagged by the model at the fit (predicted['ok'] false, "
-        f"e.g. outside its range; points {bad[:10].tolist()}{' ...' if bad.size > 10 else ''}): their residuals "
-        "use the values it computes there"
-    ]
+
+    def points(mask):
+        bad = np.flatnonzero(mask)
+        return bad.size, f"points {bad[:10].tolist()}{' ...' if bad.size > 10 else ''}"
+
+    notes = []
+    if predicted.get("ok") is not None and not np.all(predicted["ok"]):
+        count, which = points(~np.asarray(predicted["ok"], bool))
+        notes.append(
+            f"{count} of {np.size(predicted['ok'])} data points are flagged by the model at the fit (predicted['ok'] "
+            f"false, e.g. outside its range; {which}): their residuals use the values it computes there"
+        )
+    if predicted.get("stable") is not None and not np.all(predicted["stable"]):
+        count, which = points(~np.asarray(predicted["stable"], bool))
+        notes.append(
+            f"{count} of {np.size(predicted['stable'])} helices are matched to registers that are not stable "
+            f"({which}): if the data are of stable helices, fit with branch='stable' (a nearest unstable register can "
+            "absorb noise, and the error bars do not see that choice)"
+        )
+    return notes
 
 
 def _best_start(solved, agreement, model, param, solver, method, max_steps, absolute_sigma, weak_threshold, *, once):

@@ -270,6 +270,16 @@ def test_bad_input_is_an_error():
         hr.solve_static(ROD, N1, M1, 1.0, outputs=("frames",))
     with pytest.raises(ValueError, match="shape"):
         hr.solve_static(ROD, N1[:2], M1, 1.0)
+    with pytest.raises(ValueError, match="x0 must be finite"):
+        hr.solve_static(ROD, N1, M1, 1.0, x0=[np.inf, 0.0, 0.0])
+    for option, message in (
+        ({"steps": 0}, "steps must be an integer >= 1"), ({"steps": 2.5}, "steps must be an integer >= 1"),
+        ({"max_steps": -1}, "max_steps must be an integer >= 1"), ({"rtol": -1e-3}, "rtol must be finite and > 0"),
+        ({"atol": np.nan}, "atol must be finite and > 0"), ({"outputs": None}, "outputs must be a name or a sequence"),
+        ({"solver": "dopri8"}, "solver must be a diffrax solver"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            hr.solve_static(ROD, N1, M1, 1.0, **option)
 
 
 def test_max_steps():
@@ -319,3 +329,21 @@ def test_frame_must_be_a_rotation():
     for frame in (2 * np.eye(3), np.diag([1.0, 1.0, -1.0])):
         with pytest.raises(ValueError, match="solve_static: frame must be a rotation"):
             hr.solve_static(rod, np.zeros(3), np.zeros(3), 1.0, frame0=frame)
+
+
+def test_a_traced_start_frame_or_position_that_is_bad_flags_its_point():
+    frames = jnp.stack([jnp.eye(3), 2 * jnp.eye(3), jnp.diag(jnp.array([1.0, 1.0, -1.0])), jnp.eye(3)])
+    starts = jnp.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [jnp.nan, 0.0, 0.0]])
+    sol = jax.vmap(lambda f, x: hr.solve_static(ROD, N1, M1, 2.0, frame0=f, x0=x, outputs=("frame", "centreline"), throw=False))(frames, starts)
+    assert sol.valid_input.tolist() == [True, False, False, False] and sol.ok.tolist() == [True, False, False, False]
+    assert bool(jnp.all(jnp.isnan(sol.x[1:]))) and (sol.result == hr.RESULTS.invalid_input).tolist() == [False, True, True, True]
+    single = hr.solve_static(ROD, N1, M1, 2.0, outputs=("frame", "centreline"))
+    np.testing.assert_allclose(sol.x[0], single.x, atol=1e-12)
+
+
+def test_fixed_steps_too_long_for_the_solver_are_not_a_success():
+    """Munthe-Kaas steps of ~13 rad on a helix: its dexp^-1 series diverges and the states
+    are not finite; flagged `nonfinite`, not returned as a success."""
+    length = 40.0
+    sol = hr.solve_static(ROD, N0, M0, length, frame0=FRAME0, x0=X0, steps=3, outputs="centreline", throw=False)
+    assert not bool(sol.ok) and bool(sol.result == hr.RESULTS.nonfinite)

@@ -25,7 +25,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from ._compile import filter_jit, outside_transformations
 from ._equilibria import HelixEquilibria
 from ._geometry import helix_centreline, helix_frame
-from ._lie import BodyVelocityTerm, CommutatorFreeRK4, MuntheKaasRK, RodState, check_rotation, tangent
+from ._lie import BodyVelocityTerm, CommutatorFreeRK4, MuntheKaasRK, RodState, check_rotation, is_rotation, tangent
 from ._misc import as_float, differentiated_part, float_dtype, increases_within, increasing_within, is_concrete, no_gradient
 from ._rod import check_one_rod
 from ._saved_points import diffeqsolve_saving
@@ -198,8 +198,24 @@ def linearised_rate(rod, n0, m0) -> Array:
     return _spectral_radius_bound(J)
 
 
+def _check_options(solver, rtol, atol, steps, max_steps) -> None:
+    """`ValueError` naming a bad option of `solve_static`."""
+    if not isinstance(solver, diffrax.AbstractSolver):
+        raise ValueError(f"solve_static: solver must be a diffrax solver (e.g. CommutatorFreeRK4()), got {solver!r}")
+    for name, value in (("rtol", rtol), ("atol", atol)):
+        if is_concrete(value) and not (np.all(np.isfinite(np.asarray(value))) and np.all(np.asarray(value) > 0)):
+            raise ValueError(f"solve_static: {name} must be finite and > 0, got {value!r}")
+    for name, value in (("steps", steps), ("max_steps", max_steps)):
+        if name == "steps" and isinstance(value, jax.Array):  # a traced count of steps (checked by its caller)
+            continue
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1):
+            raise ValueError(f"solve_static: {name} must be an integer >= 1, got {value!r}")
+
+
 def _parse_outputs(outputs) -> tuple[bool, bool, bool]:
     """(integrate the frame, store the frame, integrate and store the centreline)."""
+    if not isinstance(outputs, str) and not isinstance(outputs, Sequence):
+        raise ValueError(f"solve_static: outputs must be a name or a sequence of names from {_OUTPUTS}, got {outputs!r}")
     names = (outputs,) if isinstance(outputs, str) else tuple(outputs)
     unknown = [name for name in names if name not in _OUTPUTS]
     if unknown:
@@ -324,6 +340,9 @@ def solve_static(
     if frame0.shape != (3, 3) or x0.shape != (3,):
         raise ValueError(f"solve_static: frame0 needs shape (3, 3) and x0 (3,), got {frame0.shape}, {x0.shape}")
     check_rotation(frame0, "solve_static")
+    if is_concrete(x0) and not np.all(np.isfinite(np.asarray(x0))):
+        raise ValueError(f"solve_static: x0 must be finite, got {np.asarray(x0)}")
+    _check_options(solver, rtol, atol, steps, max_steps)
 
     if is_concrete(n0, m0) and not np.all(np.isfinite(np.concatenate([np.asarray(n0), np.asarray(m0)]))):
         raise ValueError(f"solve_static: n0 and m0 must be finite, got n0={n0}, m0={m0}")
@@ -366,12 +385,15 @@ def _start(n0, m0, length, frame0, x0, ts, outputs):
     invalid traced input (under `vmap`) replaced by a harmless problem and flagged."""
     with_frame, _, with_x = outputs
     valid = jnp.all(jnp.isfinite(n0)) & jnp.all(jnp.isfinite(m0)) & jnp.isfinite(length) & (length > 0)
+    valid = valid & is_rotation(frame0) & jnp.all(jnp.isfinite(x0))
     if ts is not None:
         # Repeats allowed: the shooting pieces integrate the save points clipped to them.
         valid = valid & increases_within(ts, length, strict=False)
     length = jnp.where(valid, length, 1.0)
     if ts is not None:
         ts = jnp.where(valid, ts, jnp.linspace(0.0, 1.0, ts.shape[0], dtype=n0.dtype))
+    frame0 = jnp.where(valid, frame0, jnp.eye(3, dtype=frame0.dtype))
+    x0 = jnp.where(valid, x0, 0.0)
     y0 = RodState(jnp.where(valid, n0, 0.0), jnp.where(valid, m0, 0.0), frame0 if with_frame else None, x0 if with_x else None)
     return valid, y0, length, ts
 
@@ -423,11 +445,19 @@ def _integrate(rod, n0, m0, length, frame0, x0, ts, rtol, atol, solved, *, solve
         x=nan_if_invalid(ys.x) if with_x else None,
         first_integrals=integrals,
         drift=integrals - first_integrals(rod, y0.n, y0.m)[None],
-        result=RESULTS.where(valid, promote(result), RESULTS.invalid_input),
+        result=RESULTS.where(valid, _finite_or_flagged(promote(result), ys), RESULTS.invalid_input),
         valid_input=valid,
         num_steps=num_steps,
     )
     return solution
+
+
+def _finite_or_flagged(result, ys):
+    """`result`, or `nonfinite` where a successful integration's states are not finite (fixed
+    steps too long for the solver: a Munthe-Kaas step's dexp^{-1} series diverges beyond
+    ~2 pi of rotation per step; adaptive steps are capped below that)."""
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(ys)]))
+    return RESULTS.where(finite | (result != RESULTS.successful), result, RESULTS.nonfinite)
 
 
 class _Flow(eqx.Module):

@@ -451,14 +451,28 @@ class MuntheKaasRK(diffrax.AbstractAdaptiveSolver):
         return tangent(y0, *terms.vf(t0, y0, args))
 
 
+def rotation_tolerance(dtype) -> float:
+    """The largest $|D^TD - I|$ of a frame taken as a rotation: 1e-8 in float64, 1e3
+    machine epsilons in a lower precision."""
+    return max(1e-8, 1e3 * float(np.finfo(dtype if np.issubdtype(dtype, np.floating) else np.float64).eps))
+
+
+def is_rotation(frame) -> Array:
+    """Whether one traced `frame` `(3, 3)` is a rotation (`check_rotation`'s test): finite,
+    orthonormal within `rotation_tolerance`, $\\det D > 0$."""
+    frame = jnp.asarray(frame)
+    error = jnp.max(jnp.abs(frame.T @ frame - jnp.eye(3, dtype=frame.dtype)))
+    return jnp.all(jnp.isfinite(frame)) & (error <= rotation_tolerance(frame.dtype)) & (jnp.linalg.det(frame) > 0)
+
+
 def check_rotation(frame: ArrayLike, owner: str) -> None:
     """`ValueError` naming `owner` unless a concrete `frame` (`(..., 3, 3)`, columns d1, d2,
-    d3) is a rotation: $|D^TD - I| \\le$ 1e-8 in float64 (1e3 machine epsilons in a lower
-    precision) and $\\det D > 0$.  Traced frames pass (checked where they are made)."""
+    d3) is a rotation: $|D^TD - I| \\le$ `rotation_tolerance` and $\\det D > 0$.  Traced
+    frames pass (`is_rotation` tests them where a solve flags its point)."""
     if not is_concrete(frame):
         return
     f = np.asarray(frame)
-    tolerance = max(1e-8, 1e3 * float(np.finfo(f.dtype if np.issubdtype(f.dtype, np.floating) else np.float64).eps))
+    tolerance = rotation_tolerance(f.dtype)
     gram = np.einsum("...ji,...jk->...ik", f, f) - np.eye(3)
     error = np.abs(gram).max(initial=0.0)
     if not np.isfinite(error) or error > tolerance or np.any(np.linalg.det(f) < 0):

@@ -68,3 +68,21 @@ def test_sensitivity_figure_leaves_out_zero_parameters_and_names_the_register(tm
         plot.plot_sensitivity(sens, parameters=("K9",))
     with pytest.raises(ValueError, match="slot must be"):
         plot.plot_sensitivity(sens, slot=4)
+
+
+def test_bad_figure_arguments_are_named(sens):
+    for quantity in ("force", "phi", "d_forces"):
+        with pytest.raises(ValueError, match="plot_sensitivity: quantity must be one with a parameter axis"):
+            plot.plot_sensitivity(sens, quantity=quantity)
+    with pytest.raises(ValueError, match="plot_sensitivity: parameters is empty"):
+        plot.plot_sensitivity(sens, parameters=[])
+    for kappa, tau in ((1.0, np.nan), (np.inf, 0.5), (0.0, 0.5)):
+        with pytest.raises(ValueError, match="plot_helix needs a finite kappa > 0 and a finite tau"):
+            plot.plot_helix(kappa, tau)
+    with pytest.raises(ValueError, match="plot_helix draws one helix"):
+        plot.plot_helix(np.array([1.0, 2.0]), 0.5)
+    for options in ({"turns": 0}, {"turns": -1.0}, {"samples": 1}, {"samples": 2.5}):
+        with pytest.raises(ValueError, match="plot_helix needs turns > 0 and an integer samples >= 2"):
+            plot.plot_helix(1.0, 0.5, **options)
+    with pytest.raises(ValueError, match="plot_stability_atlas: slot must be 0, 1, 2 or 3"):
+        plot.plot_stability_atlas(None, slot=1.5)

@@ -294,7 +294,8 @@ def solve_static(
       whose compilation is slow for the default solver (see the README).  With `steps`
       (equal steps), `None` means `diffrax.RecursiveCheckpointAdjoint()`.  A diffrax
       adjoint (`RecursiveCheckpointAdjoint()` for reverse mode, `ForwardMode()` for
-      forward mode) differentiates the steps themselves, as `diffrax.diffeqsolve` does.
+      forward mode) differentiates the steps themselves, as `diffrax.diffeqsolve` does
+      (`jax.jacfwd` or `jax.jvp` of fixed `steps` needs `adjoint=diffrax.ForwardMode()`).
     - `throw`: raise on failure (`helixrod.SolverError` when called eagerly, an equinox
       runtime error inside `jax.jit`); with `throw=False` read `result` and `ok`.
 

@@ -317,8 +317,9 @@ def plot_sensitivity(sens, path=None, *, quantity="force_elasticity", slot=0, pa
     those whose value is zero: $\\theta\\,\\partial F/\\partial\\theta$ vanishes there, and
     its panel would be blank (plot `d_force` or `d_moment` for them).  A zero parameter
     asked for by name is drawn, and its panel says so."""
-    if quantity not in sens:
-        raise ValueError(f"unknown quantity {quantity!r}; valid are {list(sens)}")
+    per_parameter = [name for name in sens if name.startswith("d_") or name.endswith("_elasticity")]
+    if quantity not in per_parameter:
+        raise ValueError(f"plot_sensitivity: quantity must be one with a parameter axis, one of {per_parameter}; got {quantity!r}")
     if slot not in range(4):
         raise ValueError(f"slot must be 0, 1, 2 or 3 (the register), got {slot!r}")
     elasticity = quantity.endswith("_elasticity")
@@ -329,6 +330,8 @@ def plot_sensitivity(sens, path=None, *, quantity="force_elasticity", slot=0, pa
     unknown = [name for name in parameters if name not in sens.wrt]
     if unknown:
         raise ValueError(f"parameters {unknown} are not among the sensitivity's wrt {list(sens.wrt)}")
+    if not parameters:
+        raise ValueError("plot_sensitivity: parameters is empty; name at least one of " + str(list(sens.wrt)))
     ncols = min(4, len(parameters))
     nrows = -(-len(parameters) // ncols)
     fig, axes = _figure(ncols, nrows, width=3.6, height=3.0)
@@ -372,8 +375,13 @@ def plot_helix(kappa, tau, path=None, *, turns=3.0, samples=600):
 
     from ._geometry import helix_centreline
 
-    if not kappa > 0:
-        raise ValueError(f"plot_helix needs kappa > 0, got {kappa}")
+    if np.ndim(kappa) or np.ndim(tau):
+        raise ValueError(f"plot_helix draws one helix: kappa and tau must be scalars, got shapes {np.shape(kappa)}, {np.shape(tau)}")
+    if not (np.isfinite(kappa) and kappa > 0 and np.isfinite(tau)):
+        raise ValueError(f"plot_helix needs a finite kappa > 0 and a finite tau, got {kappa}, {tau}")
+    if not (np.isfinite(turns) and turns > 0) or isinstance(samples, bool) or int(samples) != samples or samples < 2:
+        raise ValueError(f"plot_helix needs turns > 0 and an integer samples >= 2, got {turns}, {samples}")
+    samples = int(samples)
     norm_u = float(np.hypot(kappa, tau))
     s = np.linspace(0.0, turns * 2 * np.pi / norm_u, samples)
     x = np.asarray(helix_centreline(jnp.asarray(kappa, float), jnp.asarray(tau, float), jnp.asarray(s)))
@@ -607,8 +615,8 @@ def plot_stability_atlas(atlas, path=None, *, slot=0):
     from matplotlib.colors import BoundaryNorm, ListedColormap, LogNorm
     from matplotlib.patches import Patch
 
-    if not 0 <= slot < 4:
-        raise ValueError(f"plot_stability_atlas: slot must be 0..3, got {slot}")
+    if slot not in range(4):
+        raise ValueError(f"plot_stability_atlas: slot must be 0, 1, 2 or 3 (the register), got {slot!r}")
     tau, kappa = np.asarray(atlas.tau, float), np.asarray(atlas.kappa, float)
     if tau.ndim != 2:
         raise ValueError(f"plot_stability_atlas: needs a 2-d (kappa, tau) grid, got shape {tau.shape}")

@@ -5,6 +5,8 @@ twist; bad pairs and failures.  A force and moment given are solved for the twis
 (the multipliers eliminated), the other pairs for twist and multipliers: the pairs'
 agreement checks the one solve against the other."""
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import BVP_ROD, SPRING, SPRING_TURN as TURN
@@ -88,6 +90,15 @@ def test_the_straight_twisted_rod_at_its_bifurcation():
         np.testing.assert_allclose([bulk.extension, bulk.rotation], [2.0, 2.0], atol=1e-15)
     with pytest.raises(hr.SolverError, match="singular Jacobian, a bifurcation of the uniform helices"):
         hr.bulk_helix(rod, 1.0, force=-1.0, rotation=1.0)
+
+
+def test_a_bad_traced_length_is_flagged_in_every_pair():
+    for controls in ({"force": 0.02, "moment": 0.01}, {"force": 0.02, "rotation": 31.0}, {"extension": 9.0, "rotation": 31.0}):
+        batch = jax.vmap(lambda L: hr.bulk_helix(SPRING, L, throw=False, **controls))(jnp.array([30.0, -1.0, jnp.inf, jnp.nan]))
+        assert batch.ok.tolist() == [True, False, False, False], controls
+        assert (batch.result == hr.RESULTS.invalid_input).tolist() == [False, True, True, True]
+        assert np.all(np.isnan(np.asarray(batch.extension[1:]))) and np.all(np.isnan(np.asarray(batch.u[1:])))
+        np.testing.assert_allclose(batch.extension[0], hr.bulk_helix(SPRING, 30.0, **controls).extension, rtol=1e-13)
 
 
 def test_frozen_root_derivatives_are_the_implicit_functions_to_second_order():

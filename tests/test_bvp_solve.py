@@ -465,6 +465,29 @@ def test_bad_input_raises_clear_errors():
         hr.solve_boundary_value(hr.Rod(jnp.ones(2), 1.0, 1.0), 10.0, end=end)
 
 
+@pytest.mark.heavy  # compiles the differentiated solve
+def test_derivatives_through_the_ends_alone_and_eager_derivatives_with_turns():
+    """d(force)/d(extension) with nothing of the rod differentiated (the ends' derivative
+    alone), under jit and eagerly, and eager d(force)/d(K3) of a spring whose ends carry
+    their total rotation: central differences agree."""
+    length, rotation = 10.0, 10.64
+
+    def pulled(extension):
+        start, end = hr.axial_ends(SPRING, length, extension=extension, rotation=rotation)
+        return hr.solve_boundary_value(SPRING, length, start=start, end=end, throw=False).force[2]
+
+    def stiffer(K3):
+        rod = hr.Rod(1.0, 1.0, K3, uhat=(0.0, 1.0, 0.3))
+        start, end = hr.axial_ends(rod, length, extension=3.017, rotation=rotation)
+        return hr.solve_boundary_value(rod, length, start=start, end=end, throw=False).force[2]
+
+    h = 1e-6
+    for f, x in ((pulled, 3.017), (stiffer, float(SPRING.K3))):
+        central = (f(x + h) - f(x - h)) / (2 * h)
+        np.testing.assert_allclose(jax.jacfwd(f)(x), central, rtol=1e-6)
+    np.testing.assert_allclose(jax.jit(jax.jacfwd(pulled))(3.017), jax.jacfwd(pulled)(3.017), rtol=1e-12)
+
+
 @pytest.mark.heavy  # compiles the vmapped solve
 def test_traced_save_points_that_are_not_arc_lengths_of_the_rod_flag_their_point():
     """NaN, decreasing or outside [0, L]: flagged `invalid_input`, NaN fields; the others

@@ -176,6 +176,9 @@ def bulk_helix_at(
     if guess is None:
         guess = (jnp.asarray(rod.uhat, dtype), jnp.zeros((), dtype), jnp.zeros((), dtype))
     values = jnp.asarray(values, dtype)
+    # Invalid traced input (under vmap): solved at a harmless length, flagged, NaN.
+    valid = jnp.isfinite(length) & (length > 0) & jnp.all(jnp.isfinite(values[jnp.asarray(index)]))
+    length = jnp.where(valid, length, 1.0)
     modes = dict(max_steps=max_steps, light=light, newton_derivatives=newton_derivatives, step_tolerance=step_tolerance)
     if _is_force_and_moment(index):
         u, result = helix_under_wrench(rod, length, values[0], values[1], guess[0], **modes)
@@ -193,15 +196,16 @@ def bulk_helix_at(
         u, mu1, mu2 = z[:3] / ell, z[3] * k_scale, z[4] * k_scale / ell
         norm = jnp.linalg.norm(u)
         safe = jnp.where(norm > 0, norm, 1.0)
+    nan_if_invalid = lambda a: jnp.where(valid, a, jnp.nan)  # noqa: E731
     return BulkHelix(
-        u=u,
-        mu1=mu1,
-        mu2=mu2,
-        force=mu2 * norm,
-        moment=mu1 * norm + mu2 * u[2] / safe,
-        extension=length * u[2] / safe,
-        rotation=length * norm,
-        result=result,
+        u=nan_if_invalid(u),
+        mu1=nan_if_invalid(mu1),
+        mu2=nan_if_invalid(mu2),
+        force=nan_if_invalid(mu2 * norm),
+        moment=nan_if_invalid(mu1 * norm + mu2 * u[2] / safe),
+        extension=nan_if_invalid(length * u[2] / safe),
+        rotation=nan_if_invalid(length * norm),
+        result=RESULTS.where(valid, result, RESULTS.invalid_input),
     )
 
 

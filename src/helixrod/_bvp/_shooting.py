@@ -350,6 +350,9 @@ def _implicit_tangents(y, pieces, flows, args, saveat, t_args, options: Boundary
     # The flows depend on the arguments through the start wrenches and through the rod and
     # the length only: their Jacobian along those scalars is integrated with the wrench one.
     q, unravel = ravel_pytree((diff.rod, diff.length))
+    # Nothing of the rod or the length differentiated (only the ends): an empty vector, of
+    # the solution's type (ravel_pytree makes it float32, and jvp then meets float64 tangents).
+    q = q.astype(y.dtype)
 
     def theta_of(q):
         rod, length = unravel(q)

@@ -493,8 +493,9 @@ def solve_boundary_value(
         options = dataclasses.replace(options, segments=segments_needed, stability_pieces=min(pieces, MAX_STABILITY_PIECES))
     guess = fit_guess(guess, options.segments, start)
     sol = solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind)
-    # One program made every field: one of them says whether they are concrete.
-    if not (is_concrete(sol.residual) and jnp.ndim(sol.residual) == 0):
+    # One program made every field: two of them say whether they are concrete (the residual
+    # carries no derivative; the force does, under an eager jax.jvp or jax.jacfwd).
+    if not (is_concrete(sol.residual, sol.force) and jnp.ndim(sol.residual) == 0):
         # Traced: flagged here (an eager call flags after its fallbacks, `_physical`).
         sol = replaced(sol, result=turns_flagged(sol.result, sol.rotation, end))
         return raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _HINT) if throw else sol

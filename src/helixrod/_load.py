@@ -11,8 +11,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._compile import filter_jit
-from ._misc import is_concrete
 from ._equilibria import helix_equilibria
+from ._misc import is_concrete
 from ._roots import NUM_SLOTS
 from ._rod import Rod
 

@@ -341,6 +341,7 @@ def solve_static(
     if frame0.shape != (3, 3) or x0.shape != (3,):
         raise ValueError(f"solve_static: frame0 needs shape (3, 3) and x0 (3,), got {frame0.shape}, {x0.shape}")
     check_rotation(frame0, "solve_static")
+    start_traced = not is_concrete(frame0, x0)
     if is_concrete(x0) and not np.all(np.isfinite(np.asarray(x0))):
         raise ValueError(f"solve_static: x0 must be finite, got {np.asarray(x0)}")
     _check_options(solver, rtol, atol, steps, max_steps)
@@ -365,7 +366,10 @@ def solve_static(
             max_steps = max(max_steps, steps)
     # Array tolerances: a new tolerance does not recompile.
     inputs = (rod, n0, m0, length, frame0, x0, ts, as_float(rtol, dtype), as_float(atol, dtype))
-    outputs = (with_frame, store_frame, with_x)
+    # The fourth entry: whether the start frame or position is traced, and so checked in the
+    # program (concrete ones were checked above: the shooting pieces, integrated from the
+    # identity pose, trace no check).
+    outputs = (with_frame, store_frame, with_x, start_traced)
     solved = None
     if adjoint is None and steps is None and not is_concrete(inputs):
         primal = jax.lax.stop_gradient(inputs)
@@ -384,9 +388,10 @@ def solve_static(
 def _start(n0, m0, length, frame0, x0, ts, outputs):
     """`(valid, y0, length, ts)`: the integration's start, its length and save points, with
     invalid traced input (under `vmap`) replaced by a harmless problem and flagged."""
-    with_frame, _, with_x = outputs
+    with_frame, _, with_x, start_traced = outputs
     valid = jnp.all(jnp.isfinite(n0)) & jnp.all(jnp.isfinite(m0)) & jnp.isfinite(length) & (length > 0)
-    valid = valid & is_rotation(frame0) & jnp.all(jnp.isfinite(x0))
+    if start_traced:
+        valid = valid & is_rotation(frame0) & jnp.all(jnp.isfinite(x0))
     if ts is not None:
         # Repeats allowed: the shooting pieces integrate the save points clipped to them.
         valid = valid & increases_within(ts, length, strict=False)
@@ -426,7 +431,7 @@ def _integrate(rod, n0, m0, length, frame0, x0, ts, rtol, atol, solved, *, solve
     """`solve_static` after its checks, as one program of its own (an eager call is one
     dispatch, compiled with helixrod's options).  `solved`: `None`, or the default path's
     flow from `_flow_of` (integrated outside this program)."""
-    _, store_frame, with_x = outputs
+    _, store_frame, with_x, _ = outputs
     valid, y0, length, ts = _start(n0, m0, length, frame0, x0, ts, outputs)
     if adjoint is None and steps is None:
         if solved is None:
@@ -446,7 +451,8 @@ def _integrate(rod, n0, m0, length, frame0, x0, ts, rtol, atol, solved, *, solve
         x=nan_if_invalid(ys.x) if with_x else None,
         first_integrals=integrals,
         drift=integrals - first_integrals(rod, y0.n, y0.m)[None],
-        result=RESULTS.where(valid, _finite_or_flagged(promote(result), ys), RESULTS.invalid_input),
+        # Fixed steps only: adaptive ones reject a non-finite step (and fail by their own codes).
+        result=RESULTS.where(valid, promote(result) if steps is None else _finite_or_flagged(promote(result), ys), RESULTS.invalid_input),
         valid_input=valid,
         num_steps=num_steps,
     )

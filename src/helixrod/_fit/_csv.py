@@ -1,11 +1,21 @@
-"""Columns of the CSV forms of the data (`HelixData`, `TweezerData`) that helixrod does not
-know: ignored with a warning, or an error when reading strictly."""
+"""What the CSV forms of the data (`HelixData`, `TweezerData`) share: the columns helixrod
+does not know, ignored with a warning or an error when reading strictly, and the error
+about particular data points that a reader turns into file lines (`PointError`)."""
 
 from __future__ import annotations
 
 import csv
 import io
 import warnings
+
+
+class PointError(ValueError):
+    """A `ValueError` about particular data points; `points` (indices from 0) lets
+    `from_csv` name the file lines instead."""
+
+    def __init__(self, message: str, points):
+        super().__init__(message)
+        self.points = [int(p) for p in points]
 
 
 def drop_unknown_columns(path, rows: list[tuple[int, str]], allowed, *, strict: bool) -> list[tuple[int, str]]:

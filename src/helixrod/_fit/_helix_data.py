@@ -18,7 +18,6 @@ from __future__ import annotations
 import csv
 import io
 import math
-import re
 from pathlib import Path
 
 import equinox as eqx
@@ -30,7 +29,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .._equilibria import helix_equilibria
 from .._misc import is_concrete, random_normal, random_split, write_atomically
 from .._rod import Rod
-from ._csv import drop_unknown_columns
+from ._csv import PointError, drop_unknown_columns
 from ._units import ANGLE_UNITS, DIMENSIONLESS_UNITS, FORCE_UNITS, INVERSE_LENGTH_UNITS, TORQUE_UNITS
 
 # The unit tables of each column's physical units (sigmas share their column's).
@@ -223,9 +222,9 @@ class HelixData(eqx.Module):
         observed = {name: ~np.isnan(arrays[name]) for name in ("force", "moment")}
         neither = np.flatnonzero(~observed["force"] & ~observed["moment"])
         if neither.size:
-            raise ValueError(
+            raise PointError(
                 f"HelixData: rows {neither[:20].tolist()} observe neither force nor moment (NaN in both): "
-                "drop them, they carry no information"
+                "drop them, they carry no information", neither
             )
         # A quantity and its sigma are read only where the quantity is observed.
         read = {"force": observed["force"], "moment": observed["moment"],
@@ -237,24 +236,25 @@ class HelixData(eqx.Module):
                 bad_rows[name] = rows.tolist()
         if bad_rows:
             rows = sorted({r for v in bad_rows.values() for r in v})
-            raise ValueError(
+            raise PointError(
                 f"HelixData: non-finite (NaN or infinite) values in rows {rows[:20]}"
                 + (" ..." if len(rows) > 20 else "")
-                + f" (columns: {', '.join(f'{k} rows {v[:5]}' for k, v in bad_rows.items())})"
+                + f" (columns: {', '.join(f'{k} rows {v[:5]}' for k, v in bad_rows.items())})",
+                rows,
             )
         for name in ("force_sigma", "moment_sigma", "kappa_sigma", "tau_sigma", "register_sigma"):
             where = read.get(name, True)
             if name in arrays and np.any(where & ~(arrays[name] > 0)):
                 rows = np.flatnonzero(where & ~(arrays[name] > 0))
-                raise ValueError(f"HelixData: {name} must be > 0; rows {rows[:20].tolist()} are not")
+                raise PointError(f"HelixData: {name} must be > 0; rows {rows[:20].tolist()} are not", rows)
         if "kappa_tau_correlation" in arrays and np.any(np.abs(arrays["kappa_tau_correlation"]) > 1):
             rows = np.flatnonzero(np.abs(arrays["kappa_tau_correlation"]) > 1)
-            raise ValueError(f"HelixData: kappa_tau_correlation must be in [-1, 1]; rows {rows[:20].tolist()} are not")
+            raise PointError(f"HelixData: kappa_tau_correlation must be in [-1, 1]; rows {rows[:20].tolist()} are not", rows)
         if np.any(arrays["kappa"] <= 0):
             rows = np.flatnonzero(arrays["kappa"] <= 0)
-            raise ValueError(
+            raise PointError(
                 f"HelixData: kappa must be > 0 (kappa < 0 is not a curvature; kappa = 0 is a "
-                f"straight rod, which has no register); rows {rows[:20].tolist()} are not"
+                f"straight rod, which has no register); rows {rows[:20].tolist()} are not", rows
             )
         if convention == "advance":
             if np.any(arrays["tau"] == 0):
@@ -420,12 +420,12 @@ class HelixData(eqx.Module):
                 units=units,
                 convention=convention,
             )
-        except ValueError as error:
+        except PointError as error:
             # The checks count data rows from 0; the file's lines are what the user sees.
-            rows = re.search(r"rows \[([\d, ]*)\]", str(error))
-            lines = [body[int(r)][0] for r in rows.group(1).split(",") if r.strip()] if rows else []
-            where = f" (file lines {lines}; data rows counted from 0)" if lines else ""
-            raise ValueError(f"{path}: {error}{where}") from None
+            lines = [body[r][0] for r in error.points[:20]]
+            raise ValueError(f"{path}: {error} (file lines {lines}; data rows counted from 0)") from None
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from None
 
     def to_csv(self, path: str | Path | None = None, *, comment: str | None = None) -> str:
         """Write the data as CSV (header line, units line, one row per helix; values with

@@ -23,7 +23,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._dna import ROOM_TEMPERATURE
 from .._misc import column, finite_scalar, float_dtype, is_concrete
-from ._csv import drop_unknown_columns
+from ._csv import PointError, drop_unknown_columns
 from ._units import FORCE_UNITS, LENGTH_UNITS, TORQUE_UNITS
 
 #: Column order of the CSV form (`force`, `extension` and one of `turns`/`torque` are required).
@@ -79,15 +79,6 @@ _TEMPERATURE_COMMENT = re.compile(r"#\s*temperature\s*:(.*)", re.IGNORECASE)
 _TEMPERATURE_VALUE = re.compile(r"([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(K|C|degC|\u00b0C)")
 
 
-class _PointError(ValueError):
-    """A `ValueError` about particular points; `points` (indices from 0) lets `from_csv`
-    name the file lines instead."""
-
-    def __init__(self, message: str, points):
-        super().__init__(message)
-        self.points = [int(p) for p in points]
-
-
 def _listed(indices) -> str:
     indices = [int(i) for i in indices]
     more = f" ... ({len(indices)} in all)" if len(indices) > _SHOWN else ""
@@ -95,10 +86,10 @@ def _listed(indices) -> str:
 
 
 def _require_points(ok, message: str):
-    """`_PointError` naming the points where the boolean array `ok` is False."""
+    """`PointError` naming the points where the boolean array `ok` is False."""
     bad = np.flatnonzero(~np.asarray(ok, bool))
     if bad.size:
-        raise _PointError(f"TweezerData: {message}; points {_listed(bad)} (counted from 0)", bad)
+        raise PointError(f"TweezerData: {message}; points {_listed(bad)} (counted from 0)", bad)
 
 
 def _per_point(x, name: str, n: int) -> np.ndarray:
@@ -646,7 +637,7 @@ class TweezerData(eqx.Module):
                 n_bp=n_bp,
                 temperature=temperature,
             )
-        except _PointError as e:
+        except PointError as e:
             raise ValueError(f"{path}: lines {_listed([lines[p] for p in e.points])}: {e}") from None
         except ValueError as e:
             raise ValueError(f"{path}: {e}") from None

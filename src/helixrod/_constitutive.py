@@ -13,7 +13,12 @@ from jaxtyping import Array, ArrayLike, Float
 
 class StrainEnergyRod(eqx.Module):
     """A rod with a general convex strain energy $W(v)$, $v = u - \\hat u$ (reference report,
-    section 1.6.2).  Usable wherever `solve_static` and `first_integrals` take a `Rod`.
+    section 1.6.2).  Usable wherever `solve_static` and `first_integrals` take a `Rod`, and
+    by the finite-rod solvers (`solve_boundary_value`, the response curves, `bulk_helix`);
+    not by the helix solvers (`helix_equilibria`, sweeps, fits, `stability_atlas`), which
+    find the registers of the quadratic energy in closed form (they raise `ValueError`).
+    The energy and the Newton settings are static: a program compiled for one energy is
+    compiled again for another function (even one with the same body).
 
     `strain_energy(v)` maps a `(3,)` array to a scalar; it must be smooth and strictly
     convex with its minimum at $v = 0$.  The moment is $m = \\nabla W(u - \\hat u)$ (by
@@ -31,9 +36,11 @@ class StrainEnergyRod(eqx.Module):
     ```
     """
 
-    strain_energy: Callable[[Array], Array]
+    # Static (part of the rod's structure, not a leaf): a program compiled for the rod
+    # (`jax.jit` takes array leaves only) is compiled for this energy and these settings.
+    strain_energy: Callable[[Array], Array] = eqx.field(static=True)
     uhat: Float[Array, "3"]
-    newton: optx.Newton
+    newton: optx.Newton = eqx.field(static=True)
 
     def __init__(self, strain_energy: Callable, uhat: ArrayLike = (0.0, 0.0, 0.0), *, rtol=1e-13, atol=1e-13):
         uhat = jnp.asarray(uhat, jnp.result_type(float))

@@ -23,7 +23,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from ._compile import jit
 from ._misc import as_float
 from ._roots import cpu_kernel, register_roots
-from ._rod import Rod, rod_vector
+from ._rod import Rod, check_quadratic_rod, rod_vector
 
 
 class HelixEquilibria(eqx.Module):
@@ -134,6 +134,7 @@ def helix_equilibria(rod: Rod, kappa: ArrayLike, tau: ArrayLike, *, fields: Sequ
     eq.phi[eq.valid], eq.force[eq.valid], eq.stable[eq.valid]
     ```
     """
+    check_quadratic_rod(rod, "helix_equilibria")
     kappa, tau = (x if hasattr(x, "dtype") else np.asarray(x) for x in (kappa, tau))
     fields = _check_fields(fields)
     shape = _check_inputs(kappa, tau)
@@ -386,6 +387,7 @@ def straight_family(rod: Rod, tension: ArrayLike):
     The rod is held straight by the constant moment $m = -K\\hat u$ and any axial tension.
     Returns `(u, m, n)` in the director frame with `n = (0, 0, tension)`.
     """
+    check_quadratic_rod(rod, "straight_family")
     tension = jnp.asarray(tension, jnp.result_type(float))
     zero = jnp.zeros_like(tension)
     shape = jnp.broadcast_shapes(tension.shape, rod.K1.shape) + (3,)
@@ -402,6 +404,7 @@ def pure_moment_family(rod: Rod, mu1: ArrayLike):
     $u = \\hat u$.  Returns `(u, m, n)`; $\\mu_1$ at an eigenvalue of $K$ gives non-finite
     values (the family passes through infinity there).
     """
+    check_quadratic_rod(rod, "pure_moment_family")
     mu1 = jnp.asarray(mu1, jnp.result_type(float))
     shape = jnp.broadcast_shapes(mu1.shape, rod.K1.shape)
     K = jnp.broadcast_to(rod.K, shape + (3, 3))

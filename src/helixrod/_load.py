@@ -14,7 +14,7 @@ from ._compile import filter_jit
 from ._equilibria import helix_equilibria
 from ._misc import is_concrete
 from ._roots import NUM_SLOTS
-from ._rod import Rod
+from ._rod import Rod, check_quadratic_rod
 
 
 class LoadedHelices(eqx.Module):
@@ -63,6 +63,7 @@ def helices_under_load(
     it and the lattice resolves it (two solutions on one branch closer than a cell can
     merge: raise `grid`).  Scalar `force`, `moment`; `jax.vmap` for many.  jit-safe.
     """
+    check_quadratic_rod(rod, "helices_under_load")
     if grid < 2 or max_solutions < 1:
         raise ValueError("grid must be >= 2 and max_solutions >= 1")
     tau_lo, tau_hi = float(tau_range[0]), float(tau_range[1])

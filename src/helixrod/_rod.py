@@ -361,6 +361,16 @@ def _rod_treedef():
     return jax.tree_util.tree_structure(Rod(1.0, 1.0, 1.0))
 
 
+def check_quadratic_rod(rod, owner: str) -> None:
+    """Raise `ValueError` unless `rod` is a `Rod` (the quadratic energy, batched or not):
+    the helix solvers find the registers of its energy in closed form; a general law
+    (`StrainEnergyRod`) has no such form (it works with `solve_static` and the finite-rod
+    solvers)."""
+    if not isinstance(rod, Rod):
+        hint = " (a StrainEnergyRod works with solve_static and the finite-rod solvers)" if hasattr(rod, "strain_energy") else ""
+        raise ValueError(f"{owner}: rod must be a helixrod.Rod, got {type(rod).__name__}{hint}")
+
+
 def check_one_rod(rod, owner: str) -> None:
     """Raise `ValueError` unless `rod` is a single rod (not a batch), read from the shape of
     its `uhat` (or, for a law without one, of its inverse law; without running it)."""

@@ -24,7 +24,7 @@ from ._compile import jit
 from ._equilibria import helix_equilibria
 from ._misc import write_atomically
 from ._progress import ProgressArgument, check_progress, progress_bar
-from ._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
+from ._rod import PARAMETER_NAMES, Rod, check_quadratic_rod, rod_from_vector, rod_vector
 
 #: Per-register fields (shape ``(len(kappa), len(tau), 4)``), with their numpy dtypes.
 REGISTER_FIELDS = {
@@ -77,8 +77,7 @@ def _check_axis(name, x, caller="sweep") -> np.ndarray:
 
 
 def _check_rod(rod, caller="sweep") -> None:
-    if not isinstance(rod, Rod):
-        raise ValueError(f"{caller}: rod must be a helixrod.Rod, got {type(rod).__name__}")
+    check_quadratic_rod(rod, caller)
     if jnp.shape(rod.K1) != ():
         raise ValueError(f"{caller}: rod must be a single rod (batch shape ()), got batch shape {jnp.shape(rod.K1)}")
 

@@ -66,7 +66,7 @@ from .._equilibria import helix_equilibria
 from .._misc import check_integer, finite_scalar, float_dtype, solve_small
 from .._lie import hat, so3_exp
 from .._progress import ProgressArgument, batch_size, check_progress, progress_bar, scan_in_batches
-from .._rod import check_one_rod
+from .._rod import check_one_rod, check_quadratic_rod
 from ._ends import CLAMPED, end_condition
 from ._stability import EXTENSIBILITY, PIECE_RESOLUTION, assess, piece_hessian, stiffness_range
 
@@ -542,6 +542,7 @@ def stability_atlas(
     ```
     """
     owner = "stability_atlas"
+    check_quadratic_rod(rod, owner)  # its helices are `helix_equilibria`'s
     check_one_rod(rod, owner)
     dtype = float_dtype()
     kappa, tau = (jnp.asarray(a, dtype) for a in (kappa, tau))

@@ -28,7 +28,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._equilibria import helix_equilibria
 from .._misc import is_concrete, random_normal, random_split, write_atomically
-from .._rod import Rod
+from .._rod import Rod, check_quadratic_rod
 from ._csv import PointError, drop_unknown_columns
 from ._units import ANGLE_UNITS, DIMENSIONLESS_UNITS, FORCE_UNITS, INVERSE_LENGTH_UNITS, TORQUE_UNITS
 
@@ -478,6 +478,7 @@ def synthetic_helix_data(
     (default), `("force",)` or `("moment",)`; the other one is `None` (partial data).  Not
     jit-able (it returns validated `HelixData`).
     """
+    check_quadratic_rod(rod, "synthetic_helix_data")
     observe = (observe,) if isinstance(observe, str) else tuple(observe)
     if not observe or any(q not in ("force", "moment") for q in observe):
         raise ValueError(f"observe must name 'force' and/or 'moment', got {observe!r}")

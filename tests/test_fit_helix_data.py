@@ -90,6 +90,15 @@ def test_csv_first_row_units_and_file_lines(tmp_path):
     path.write_text(header + ",,1,1,1,1\n2.0,1.5,0.6,0.4,0.1,0.1\n")
     with pytest.raises(ValueError, match="observe neither force nor moment"):
         hr.HelixData.from_csv(path)
+    # A first data row with text in it (a typo, "NA") is a data row with an error that names
+    # its line, not a units line (which would lose the row and take its numbers for units).
+    for row in ("NA,0.5,1.2,0.3,0.01,0.01", "1.0x,0.5,1.2,0.3,0.01,0.01", "1.0,0.5,1.2x,0.3,0.01,0.01"):
+        path.write_text(header + row + "\n1.0,0.5,1.1,0.3,0.01,0.01\n")
+        with pytest.raises(ValueError, match=r"a.csv:2: not a number"):
+            hr.HelixData.from_csv(path)
+    path.write_text(header + "1.0,0.5,1.2x,0.3y,0.01,0.01\n1.0,0.5,1.1,0.3,0.01,0.01\n")
+    with pytest.raises(ValueError, match=r"a.csv:2: neither a units line \(numbers in \['force', 'moment'"):
+        hr.HelixData.from_csv(path)
     # The checks of the values name the file's lines (comments and blank lines counted).
     path.write_text("# a comment\n" + header + "\n1.0,1.0,0.5,0.3,0.1,0.1\n2.0,1.5,-1,0.4,0.1,0.1\n")
     with pytest.raises(ValueError, match=r"kappa must be > 0.*rows \[1\] are not \(file lines \[5\]"):

@@ -335,8 +335,9 @@ class HelixData(eqx.Module):
         kappa_sigma, tau_sigma, kappa_tau_correlation, register, register_sigma` in any order
         (`kappa`, `tau` and one of `force`, `moment` are required; the sigma columns may
         instead be given as arguments, which then override).  An empty (or `nan`) cell of
-        `force` or `moment`, or of its sigma, means not measured at that point.  The next line may be a units line: same columns, unit strings; it is
-        recognised by a cell that is text, not a number.  Physical units (force pN, fN,
+        `force` or `moment`, or of its sigma, means not measured at that point.  The next line
+        may be a units line: same columns, unit strings; it is recognised by its `kappa` and
+        `tau` cells, which are not numbers (in a data row they are).  Physical units (force pN, fN,
         nN, N; moment pN nm, N m, ...; curvature and torsion 1/nm, 1/um, 1/m, ...; register
         rad or deg) are converted to pN, pN nm, 1/nm and rad, so the fitted stiffness is in
         pN nm^2; labels that are not physical units (`K1/L^2, K1/L, 1/L, 1/L` for data in
@@ -364,12 +365,20 @@ class HelixData(eqx.Module):
         units = {}
         if body:
             first = next(csv.reader([body[0][1]]))
-            # A units line has a cell that is text, not a number; a data row may begin with an
-            # empty cell (a force not measured there).
-            if any(cell.strip() and not _is_number(cell) for cell in first):
+            # A units line states kappa's and tau's units; a data row has their numbers (a
+            # data row may begin with an empty cell: a force not measured there, and one with
+            # a typo elsewhere is a data row with an error, not a units line).
+            lookup = dict(zip(names, first))
+            if not any(_is_number(lookup.get(n, "0")) for n in ("kappa", "tau")):
                 if len(first) != len(names):
                     raise ValueError(f"{path}:{body[0][0]}: units line has {len(first)} cells, header has {len(names)}")
-                units = {n: u.strip() for n, u in zip(names, first)}
+                numbers = [n for n, u in lookup.items() if _is_number(u) and u.strip() not in DIMENSIONLESS_UNITS]
+                if numbers:
+                    raise ValueError(
+                        f"{path}:{body[0][0]}: neither a units line (numbers in {numbers}) nor a data row (kappa and "
+                        f"tau are not numbers): {first}"
+                    )
+                units = {n: u.strip() for n, u in lookup.items()}
                 body = body[1:]
         values = np.empty((len(body), len(names)))
         for r, (lineno, line) in enumerate(body):

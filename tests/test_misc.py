@@ -431,3 +431,25 @@ def test_json_text_is_standard_json_and_reads_back():
     assert back["values"][:2] == [1.0, -math.inf] and math.isnan(back["values"][2])
     # Files written before (Python's Infinity and NaN constants) read too.
     assert _misc.json_record(json.dumps(record))["stderr"]["K1"] == math.inf
+
+
+def test_write_atomically_gives_the_permissions_of_a_plain_write(tmp_path):
+    """A new file gets the umask's permissions (not the temporary file's private 0600);
+    a replaced one keeps its own."""
+    import os
+    import stat
+
+    from helixrod._misc import write_atomically
+
+    old = os.umask(0o022)
+    try:
+        fresh = tmp_path / "fresh.json"
+        write_atomically(fresh, lambda f: f.write(b"{}"))
+        assert stat.S_IMODE(fresh.stat().st_mode) == 0o644
+        kept = tmp_path / "kept.json"
+        kept.write_bytes(b"old")
+        kept.chmod(0o640)
+        write_atomically(kept, lambda f: f.write(b"new"))
+        assert stat.S_IMODE(kept.stat().st_mode) == 0o640 and kept.read_bytes() == b"new"
+    finally:
+        os.umask(old)

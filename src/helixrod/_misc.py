@@ -596,16 +596,26 @@ def json_record(text: str):
 def write_atomically(path, write, *, binary: bool = True) -> None:
     """Write a file through `write(file)` into a temporary file beside `path`, then rename
     it over `path`: an interrupted or failed write leaves an existing file whole.  The
-    name is used exactly as given (no suffix added)."""
+    name is used exactly as given (no suffix added).  The file gets the permissions of the
+    one it replaces, or those of a new file under the process's umask (the temporary file
+    is private until then)."""
     import os
+    import stat
     import tempfile
 
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
+    try:
+        mode = stat.S_IMODE(os.stat(path).st_mode)
+    except FileNotFoundError:
+        umask = os.umask(0)
+        os.umask(umask)
+        mode = 0o666 & ~umask
     handle, temporary = tempfile.mkstemp(dir=folder, prefix=".", suffix=".part")
     try:
         with os.fdopen(handle, "wb" if binary else "w") as file:
             write(file)
+        os.chmod(temporary, mode)
         os.replace(temporary, path)
     except BaseException:
         if os.path.exists(temporary):

@@ -53,6 +53,25 @@ def test_information_criteria_from_their_definitions(noisy_fit):
     assert d["aic"] == fit.aic and d["bic"] == fit.bic
 
 
+def test_profile_of_an_isotropic_fit_keeps_the_tie():
+    """An isotropic fit's profile of K3 refits with K2 = K1 still tied (it freed K2, and
+    the profile went below the fit's own minimum): at the grid ends it equals refits with
+    K3 fixed, and near this well-determined minimum the ends at +-4 standard errors have
+    delta chi2 = 16."""
+    rng = np.random.default_rng(0)
+    kappa, tau = rng.uniform(0.3, 2.5, 30), rng.uniform(-1.5, 2.0, 30)
+    data = hr.synthetic_helix_data(hr.Rod(1.0, 1.0, 0.8), kappa, tau, 0.01, jax.random.key(1))
+    options = dict(isotropic=True, fix={"K13": 0.0, "K23": 0.0})
+    fit = hr.fit_stiffness(data, **options)
+    profile = hr.profile_likelihood(fit, "K3", points=5)
+    delta = np.asarray(profile.delta_chi2)
+    assert np.all(delta >= -1e-9)
+    for value, d in ((profile.values[0], delta[0]), (profile.values[-1], delta[-1])):
+        refit = hr.fit_stiffness(data, isotropic=True, fix={**options["fix"], "K3": float(value)})
+        np.testing.assert_allclose(d, 2 * (float(refit.cost) - float(fit.cost)), rtol=1e-6)
+        np.testing.assert_allclose(d, 16.0, rtol=1e-2)
+
+
 def test_bad_profile_requests(noisy_fit):
     _, _, fit = noisy_fit
     with pytest.raises(ValueError, match="is not a free parameter"):

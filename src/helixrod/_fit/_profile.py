@@ -94,7 +94,11 @@ def profile_likelihood(
     fixed[name] = best
     if param.isotropic and name == "K1":  # the tie K2 = K1 holds K2 with it
         fixed["K2"] = best
-    held = Parameterisation(fixed, float(param.k_scale), float(param.u_scale), param.extra, dict(fixed, **{n: float(fit.params[n]) for n in param.extra_free if n != name}))
+    # The tie K2 = K1 of an isotropic fit stays (held K1 fixes both; `Parameterisation`).
+    held = Parameterisation(
+        fixed, float(param.k_scale), float(param.u_scale), param.extra,
+        dict(fixed, **{n: float(fit.params[n]) for n in param.extra_free if n != name}), param.isotropic,
+    )
     p_fit = np.asarray(rod_vector(fit.rod))
     extra_fit = np.asarray(param.extra_vector(jnp.asarray([float(fit.params[n]) for n in param.names])))
     z0 = jnp.asarray(held.internal(p_fit, extra_fit))

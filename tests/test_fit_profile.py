@@ -90,3 +90,26 @@ def test_propagate_is_the_delta_method(noisy_fit):
     np.testing.assert_allclose(values["sum"], float(fit.params["K1"] + fit.params["K2"]), rtol=1e-12)
     np.testing.assert_allclose(stderr["sum"], np.sqrt(cov[i, i] + cov[j, j] + 2 * cov[i, j]), rtol=1e-10)
     np.testing.assert_allclose(stderr["K3"], fit.stderr["K3"], rtol=1e-10)
+
+
+def test_propagate_marks_what_the_data_do_not_determine(tmp_path):
+    """Force-only helix data say nothing along K -> K + c I (the trace): a derived quantity
+    that changes along it is undetermined (inf, not the pseudo-inverse's finite error);
+    one orthogonal to it (K3 - K1) keeps the delta method's error.  The null directions
+    survive save/load."""
+    rng = np.random.default_rng(0)
+    rod = hr.Rod(1.0, 1.5, 0.8, K13=0.3, K23=0.2)
+    kappa, tau = rng.uniform(0.3, 2.5, 30), rng.uniform(-2.0, 2.0, 30)
+    data = hr.synthetic_helix_data(rod, kappa, tau, 0.01, jax.random.key(1), observe=("force",))
+    fit = hr.fit_stiffness(data)
+    null = np.asarray(fit.identifiability.null_directions)
+    assert null.shape == (1, 5)
+    np.testing.assert_allclose(np.abs(null[0, :3]), 1 / np.sqrt(3), atol=1e-6)
+    values, stderr = fit.propagate(lambda r, p: {"K1": p["K1"], "trace": r.K1 + r.K2 + r.K3, "difference": r.K3 - r.K1})
+    assert np.isinf(stderr["K1"]) and np.isinf(stderr["trace"])
+    cov = np.asarray(fit.covariance)
+    gradient = np.array([-1.0, 0.0, 1.0, 0.0, 0.0])
+    np.testing.assert_allclose(stderr["difference"], np.sqrt(gradient @ cov @ gradient), rtol=1e-10)
+    np.testing.assert_allclose(values["difference"], rod.K3 - rod.K1, atol=5 * float(stderr["difference"]))
+    fit.save(tmp_path / "fit.json")
+    np.testing.assert_allclose(hr.StiffnessFit.load(tmp_path / "fit.json").identifiability.null_directions, null, rtol=1e-14)

@@ -60,6 +60,8 @@ class StiffnessFit(eqx.Module):
     $\\sigma$-normalised residuals (sigma trusted, `absolute_sigma=True`), or that times the
     reduced $\\chi^2$ = `2 cost / (m - p)` when `absolute_sigma=False`; a parameter with
     a share in a null direction of $J$ has `inf`.  `cost` = $\\tfrac12\\sum r^2$ as scipy;
+    The covariance is the pseudo-inverse: it has no variance along a null direction
+    (`identifiability.null_directions`), where `stderr` and `propagate` give `inf`.
     `residuals` normalised, of the observations only (helix data: the F residuals of the
     points with a measured force, then the M residuals of those with a measured moment,
     then registers if fitted).  `predicted`: the model's predictions of the observed quantities
@@ -149,7 +151,10 @@ class StiffnessFit(eqx.Module):
         """Values and standard errors of derived quantities: `function(rod, params)` (the
         fitted `Rod` and the mapping of every free parameter's value, traced) returns a
         pytree of arrays; returns `(values, stderr)` of the same structure, the errors by
-        first-order propagation of `covariance` through `jax.jacfwd` (the delta method).
+        first-order propagation of `covariance` through `jax.jacfwd` (the delta method);
+        `inf` for a quantity that changes along a null direction of the fit
+        (`identifiability.null_directions`: the data do not determine it, and the
+        covariance, a pseudo-inverse, has no variance there).
         E.g. a tweezer fit's S, C, g along the force range:
         `fit.propagate(lambda rod, p: dna.tweezer_moduli(rod, forces,
         persistence_length=p["persistence_length"]))`.  Each call compiles a program of its
@@ -165,12 +170,23 @@ class StiffnessFit(eqx.Module):
             values = dict(zip(self.names, [qq[i] for i in range(len(self.names))]))
             return function(param.rod(qq), {**fixed_extra, **values})
 
-        @jit(run_once=True)  # a new program each call
-        def propagated(qq, cov):
-            jacobian, values = jax.jacfwd(lambda x: (derived(x),) * 2, has_aux=True)(qq)
-            return values, jax.tree.map(lambda j: jnp.sqrt(jnp.einsum("...i,ij,...j->...", j, cov, j)), jacobian)
+        ident = self.identifiability
+        null = np.zeros((0, q.size)) if ident.null_directions is None else np.asarray(ident.null_directions)
 
-        return propagated(q, jnp.asarray(self.covariance))
+        @jit(run_once=True)  # a new program each call
+        def propagated(qq, cov, scales, null):
+            jacobian, values = jax.jacfwd(lambda x: (derived(x),) * 2, has_aux=True)(qq)
+
+            def stderr(j):
+                variance = jnp.maximum(jnp.einsum("...i,ij,...j->...", j, cov, j), 0.0)
+                scaled = j * scales  # the report's parameters, in which the null directions are unit vectors
+                along = jnp.abs(scaled @ null.T)
+                undetermined = jnp.any(along > 1e-6 * jnp.linalg.norm(scaled, axis=-1, keepdims=True), axis=-1)
+                return jnp.where(undetermined, jnp.inf, jnp.sqrt(variance))
+
+            return values, jax.tree.map(stderr, jacobian)
+
+        return propagated(q, jnp.asarray(self.covariance), jnp.asarray(ident.scales, q.dtype), jnp.asarray(null, q.dtype))
 
     def interval(self, level: float = 0.95) -> dict[str, tuple[float, float]]:
         """Normal-approximation confidence intervals value ± z stderr, by name."""

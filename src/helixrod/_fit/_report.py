@@ -30,7 +30,10 @@ class Identifiability(eqx.Module):
     rod determine $K_3 - K_1$ alone); `rank`
     the numerical rank; `symmetries` the exact frame symmetries that apply (identical
     predictions), and `notes` on near-symmetries and on residuals left out of or
-    constraining the error analysis."""
+    constraining the error analysis.  `null_directions` `(k, p)`: the exact null directions
+    (unit vectors in the scaled parameters; `weak` lists them rounded), along which the
+    data say nothing: a quantity that changes along one is undetermined
+    (`StiffnessFit.propagate`); None for a report read from a file that has none."""
 
     names: tuple[str, ...] = eqx.field(static=True)
     scales: Float[np.ndarray, " p"]
@@ -44,6 +47,7 @@ class Identifiability(eqx.Module):
     notes: tuple[str, ...] = eqx.field(static=True)
     determined: tuple = eqx.field(static=True, default=())
     determined_stderr: tuple = eqx.field(static=True, default=())
+    null_directions: Float[np.ndarray, "k p"] | None = None
 
     def to_dict(self) -> dict:
         """Plain-Python form (JSON-serialisable)."""
@@ -59,6 +63,7 @@ class Identifiability(eqx.Module):
             "notes": list(self.notes),
             "determined": [dict(w) for w in self.determined],
             "determined_stderr": list(self.determined_stderr),
+            "null_directions": None if self.null_directions is None else np.asarray(self.null_directions).tolist(),
         }
 
     @classmethod
@@ -77,6 +82,7 @@ class Identifiability(eqx.Module):
             notes=tuple(d["notes"]),
             determined=tuple(tuple(w.items()) for w in d.get("determined", [])),
             determined_stderr=tuple(float(e) for e in d.get("determined_stderr", [])),
+            null_directions=None if d.get("null_directions") is None else np.asarray(d["null_directions"], float).reshape(-1, len(names)),
         )
 
 
@@ -221,6 +227,7 @@ def error_analysis(
         notes=tuple(notes),
         determined=tuple(determined),
         determined_stderr=tuple(determined_err),
+        null_directions=Vt[null],
     )
     return ErrorAnalysis(
         covariance=cov,

@@ -105,3 +105,23 @@ def test_cli_fit_bad_fix_is_a_usage_error(tmp_path):
         result = runner.invoke(app, ["fit", str(example_data_path()), "--fix", entry])
         assert result.exit_code == 2, result.output
         assert message in " ".join(result.output.split())
+
+
+def test_fixed_couplings_beside_the_default_start():
+    """A fixed coupling too strong for the default start's isotropic diagonal: the free
+    stiffnesses make room for it (a free K3 keeps the estimate as its Schur complement;
+    with K3 fixed, free K1 and K2 grow) instead of an error about a rod nobody gave."""
+    from helixrod._fit._parameters import start_vector
+
+    default = np.array([0.53, 0.53, 0.07, 0.0, 0.0, 0.0, 0.0, 0.0])
+    p = start_vector(None, {"K13": 0.8}, default)
+    np.testing.assert_allclose(p[2] - p[3] ** 2 / p[0], 0.07, rtol=1e-12)
+    p = start_vector(None, {"K3": 0.5, "K13": 0.6, "K23": 0.3}, default)
+    assert p[2] - p[3] ** 2 / p[0] - p[4] ** 2 / p[1] > 0 and p[0] == p[1] > 0.53
+    with pytest.raises(ValueError, match="positive definite"):  # fixed values that leave no room
+        start_vector(None, {"K1": 1.0, "K2": 1.0, "K3": 0.5, "K13": 0.8}, default)
+    rng = np.random.default_rng(0)
+    kappa, tau = rng.uniform(0.3, 2.5, 30), rng.uniform(-2.0, 2.0, 30)
+    data = hr.synthetic_helix_data(hr.Rod(1.0, 1.5, 0.8, K13=0.8), kappa, tau, 0.01, jax.random.key(2))
+    fit = hr.fit_stiffness(data, fix={"K13": 0.8})
+    assert fit.ok and fit.chi2_reduced < 2.0

@@ -281,7 +281,9 @@ def extra_start(init, fixed: dict[str, float], extra: tuple[ModelParameter, ...]
 def start_vector(init, fixed: dict[str, float], default, model_names=()) -> np.ndarray:
     """Full physical vector of the rod from `init` (a Rod, a mapping or None; entries named
     in `model_names` are the model's, see `extra_start`) over `default`, with the fixed
-    values imposed; `ValueError` unless it is a valid rod."""
+    values imposed; `ValueError` unless it is a valid rod.  Without `init`, fixed couplings
+    too strong for the default's diagonal are made room for by the free stiffnesses
+    (`_room_for_couplings`)."""
     p = dict(zip(PARAMETER_NAMES, default))
     if isinstance(init, Rod):
         p.update(zip(PARAMETER_NAMES, [float(getattr(init, n)) for n in PARAMETER_NAMES[:5]] + [float(u) for u in np.asarray(init.uhat)]))
@@ -295,6 +297,32 @@ def start_vector(init, fixed: dict[str, float], default, model_names=()) -> np.n
     elif init is not None:
         raise ValueError("init must be a Rod, a mapping of parameter values, or None")
     p.update({n: v for n, v in fixed.items() if n in p})
+    if init is None:
+        p = _room_for_couplings(p, fixed)
     v = np.array([p[n] for n in PARAMETER_NAMES], float)
     check_rod_vector(v)
     return v
+
+
+def _room_for_couplings(p: dict[str, float], fixed: dict[str, float]) -> dict[str, float]:
+    """`p` (by name) positive definite by its free stiffnesses where fixed couplings make
+    the default start indefinite (`fix={"K13": 0.8}` beside an isotropic estimate of K3 =
+    0.07): a free K3 becomes its Schur complement's old value plus what the couplings take,
+    $K_3 = S + K_{13}^2/K_1 + K_{23}^2/K_2$; with K3 fixed, free K1 and K2 grow by a
+    common factor until the complement is half of K3.  Unchanged where it is positive
+    definite already or nothing free can help (the check then names the values)."""
+    K1, K2, K3, K13, K23 = (p[n] for n in STIFFNESS_NAMES)
+    if not (K1 > 0 and K2 > 0 and K3 > 0) or K3 - K13**2 / K1 - K23**2 / K2 > 0:
+        return p
+    p = dict(p)
+    if "K3" not in fixed:
+        p["K3"] = K3 + K13**2 / K1 + K23**2 / K2
+        return p
+    free = [(n, c) for n, c in (("K1", K13), ("K2", K23)) if n not in fixed]
+    taken_fixed = sum(c**2 / p[n] for n, c in (("K1", K13), ("K2", K23)) if n in fixed)
+    taken_free = sum(c**2 / p[n] for n, c in free)
+    if free and taken_free > 0 and taken_fixed < 0.5 * K3:
+        factor = taken_free / (0.5 * K3 - taken_fixed)
+        for n, _ in free:
+            p[n] *= factor
+    return p

@@ -40,3 +40,19 @@ def test_parametric_replicates_with_errors_in_variables_spread_as_the_standard_e
         assert bool(np.all(np.asarray(boot.ok)))
         ratio = np.array([float(boot.std[name]) / float(fit.stderr[name]) for name in fit.names])
         assert np.all((0.75 < ratio) & (ratio < 1.3)), (kind, ratio)
+
+
+def test_bootstrap_arguments_are_checked_before_refitting():
+    """A fractional count, an integer seed for a key and a percentage for a level raise
+    ValueErrors that name them (they were truncated, or failed inside JAX or NumPy)."""
+    rng = np.random.default_rng(0)
+    kappa, tau = rng.uniform(0.3, 2.5, 12), rng.uniform(-2.0, 2.0, 12)
+    data = hr.synthetic_helix_data(hr.Rod(1.0, 1.5, 0.8), kappa, tau, 0.01, jax.random.key(0))
+    fit = hr.fit_stiffness(data, uhat=(0.0, 0.0, 0.0), n_starts=2)
+    with pytest.raises(ValueError, match="bootstrap: n must be an integer >= 2, got 2.5"):
+        hr.bootstrap(data, fit, 2.5, jax.random.key(0))
+    with pytest.raises(ValueError, match="bootstrap: key must be one JAX random key"):
+        hr.bootstrap(data, fit, 4, 5)
+    boot = hr.bootstrap(data, fit, 4, jax.random.key(0))
+    with pytest.raises(ValueError, match=r"interval: level must be in \(0, 1\)"):
+        boot.interval(95)

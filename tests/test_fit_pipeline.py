@@ -97,6 +97,22 @@ def test_bad_options_give_documented_errors():
     for steps in (0, 2.5, True, "64"):
         with pytest.raises(ValueError, match="max_steps must be an integer >= 1"):
             hr.fit_stiffness(data, max_steps=steps)
+    with pytest.raises(ValueError, match="n_starts must be an integer >= 1, got 2.5"):
+        hr.fit_stiffness(data, n_starts=2.5)
+    with pytest.raises(ValueError, match="key must be one JAX random key"):
+        hr.fit_stiffness(data, key=3)
+    with pytest.raises(ValueError, match="rtol must be finite and > 0"):
+        hr.fit_stiffness(data, rtol=-1.0)
+    with pytest.raises(ValueError, match="weak_threshold must be > 0"):
+        hr.fit_stiffness(data, weak_threshold=-1.0)
+    for bad in ([1 + 1j, 2.0], ["a", 2.0]):
+        with pytest.raises(ValueError, match="HelixData: force must be"):
+            hr.HelixData(force=bad, moment=[0.5, 0.1], kappa=[1.0, 0.5], tau=[0.2, -0.3])
+    with pytest.raises(ValueError, match="key must be one JAX random key"):
+        hr.synthetic_helix_data(hr.Rod(1.0, 1.5, 0.8), [1.0], [0.5], 0.01, 1)
+    # The deviation of a quantity not observed is not used.
+    force_only = hr.synthetic_helix_data(hr.Rod(1.0, 1.5, 0.8), [1.0], [0.5], (0.01, 0.0), jax.random.key(0), observe=("force",))
+    assert bool(np.all(np.isnan(np.asarray(force_only.moment)))) and float(force_only.force_sigma[0]) == 0.01
 
 
 def test_cli_fit_bad_fix_is_a_usage_error(tmp_path):

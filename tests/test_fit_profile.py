@@ -80,6 +80,9 @@ def test_bad_profile_requests(noisy_fit):
         hr.profile_likelihood(fit, "K1", level=1.5)
     with pytest.raises(ValueError, match="at least two finite"):
         hr.profile_likelihood(fit, "K1", values=[1.0])
+    for level in (95, 1.0, -0.5):
+        with pytest.raises(ValueError, match=r"interval: level must be in \(0, 1\)"):
+            fit.interval(level)
 
 
 def test_propagate_is_the_delta_method(noisy_fit):

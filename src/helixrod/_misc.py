@@ -102,6 +102,18 @@ def check_integer(value, name: str, owner: str, minimum: int = 1) -> int:
     return int(value)
 
 
+def check_key(key, owner: str):
+    """`key`, or `ValueError` unless it is one JAX random key (`jax.random.key(seed)`, or a
+    legacy `jax.random.PRNGKey(seed)`): an integer seed or a batch of keys failed inside
+    JAX's sampler with a message about PRNG key data."""
+    dtype = getattr(key, "dtype", None)
+    typed = dtype is not None and jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key) and jnp.shape(key) == ()
+    legacy = dtype is not None and dtype == jnp.uint32 and jnp.shape(key) == (2,)
+    if not (typed or legacy):
+        raise ValueError(f"{owner}: key must be one JAX random key, e.g. jax.random.key(0), got {key!r:.60}")
+    return key
+
+
 def check_choice(value, choices, name: str, owner: str):
     """`value`, or `ValueError` unless it is one of `choices`."""
     if value not in choices:
@@ -137,10 +149,22 @@ def finite_scalar(x: ArrayLike, name: str, owner: str, *, positive: bool = False
     return a
 
 
+def real_array(x: ArrayLike, name: str, owner: str) -> np.ndarray:
+    """`x` as a float64 NumPy array; `ValueError` naming it for complex numbers (NumPy would
+    drop their imaginary parts with a warning) or entries that are not numbers."""
+    try:
+        a = np.asarray(x)
+        if not np.iscomplexobj(a):
+            return np.asarray(a, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{owner}: {name} must be numbers, got {x!r:.80}") from None
+    raise ValueError(f"{owner}: {name} must be real numbers, got complex values")
+
+
 def column(x: ArrayLike, name: str, owner: str, n: int | None = None) -> np.ndarray:
     """A one-dimensional float64 NumPy column (a scalar broadcasts to length `n` when `n` is
     given); `ValueError` for another shape or non-finite entries, naming the rows."""
-    a = np.asarray(x, dtype=float)
+    a = real_array(x, name, owner)
     if n is not None and a.ndim == 0:
         a = np.full(n, float(a))
     if a.ndim != 1 or (n is not None and a.shape != (n,)):

@@ -10,6 +10,7 @@ import numpy as np
 from jaxtyping import Array
 
 from .._compile import filter_jit
+from .._misc import check_integer, check_key
 from .._progress import ProgressArgument, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import PARAMETER_NAMES, rod_vector
 from .._status import RESULTS, raise_if_failed, succeeded
@@ -43,6 +44,8 @@ class Bootstrap(eqx.Module):
 
     def interval(self, level: float = 0.95) -> dict[str, tuple[float, float]]:
         """Percentile interval `(lower, upper)` holding `level` of the replicates, by name."""
+        if not 0 < level < 1:
+            raise ValueError(f"interval: level must be in (0, 1) (0.95 for 95 %), got {level}")
         lo, hi = 50 * (1 - level), 50 * (1 + level)
         return {n: (float(np.nanpercentile(v, lo)), float(np.nanpercentile(v, hi))) for n, v in self.samples.items()}
 
@@ -83,8 +86,8 @@ def bootstrap(
         raise ValueError("bootstrap needs the problem of a fit from fit_stiffness in this session (a fit_stiffness_linear result or a StiffnessFit.load-ed one has none)")
     if kind not in KINDS:
         raise ValueError(f"kind must be 'cases' or 'parametric', got {kind!r}")
-    if n < 2:
-        raise ValueError("n must be >= 2")
+    n = check_integer(n, "n", "bootstrap", minimum=2)
+    check_key(key, "bootstrap")
     check_progress(progress, "bootstrap")
     problem = fit.problem
     model = problem.model.with_data(data)

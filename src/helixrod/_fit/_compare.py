@@ -32,7 +32,7 @@ import numpy as np
 from jaxtyping import Array
 
 from .._compile import filter_jit
-from .._misc import chi2_survival
+from .._misc import check_integer, check_key, chi2_survival
 from .._rod import rod_vector
 from .._status import RESULTS, result_name
 from ._helix_data import HelixData
@@ -84,10 +84,9 @@ class ModelComparison(eqx.Module):
         if pair is None:
             pairs = [(t["smaller"], t["larger"]) for t in self.tests]
             raise ValueError(f"simulate_test: {smaller!r} is not nested in {larger!r} here; nested pairs: {pairs}")
-        if n < 2:
-            raise ValueError(f"simulate_test: n must be >= 2, got {n}")
+        n = check_integer(n, "n", "simulate_test", minimum=2)
         small, large = self.fits[smaller], self.fits[larger]
-        key = jax.random.key(0) if key is None else key
+        key = jax.random.key(0) if key is None else check_key(key, "simulate_test")
         models = small.problem.model.replicates("parametric", int(n), key, small.predicted)
         costs, oks = [], []
         # The larger model starts from both fits: the smaller one's may be a stationary point

@@ -29,7 +29,7 @@ from .._bvp import (
     solve_boundary_value,
     stack_ends,
 )
-from .._misc import check_integer, column, finite_scalar, float_dtype, random_normal
+from .._misc import check_integer, check_key, column, finite_scalar, float_dtype, random_normal
 
 
 class EndResponseData(eqx.Module):
@@ -227,6 +227,7 @@ def synthetic_end_response_data(
     which are the sigmas of the data.  Points that do not converge raise `ValueError`.
     """
     owner = "synthetic_end_response_data"
+    check_key(key, owner)
     if controls not in AXIAL_CONTROLS:
         raise ValueError(f"{owner}: controls must be one of {tuple(AXIAL_CONTROLS)}, got {controls!r}")
     test = AXIAL_CONTROLS[controls]
@@ -277,6 +278,7 @@ def synthetic_shape_data(
     `end` (one per image), clamped at `start` (default origin, identity), with isotropic
     Gaussian noise of standard deviation `noise` (absolute, length units; 0 gives exact
     points with `sigma = 1e-3 L`).  Solved with `solve_boundary_value` (default guess)."""
+    check_key(key, "synthetic_shape_data")
     ends = [end] if isinstance(end, AbstractEnd) else list(end)
     start = Clamped() if start is None else start
     noise = float(noise)

@@ -27,7 +27,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._equilibria import helix_equilibria
-from .._misc import is_concrete, random_normal, random_split, write_atomically
+from .._misc import check_key, is_concrete, random_normal, random_split, real_array, write_atomically
 from .._rod import Rod, check_quadratic_rod
 from ._csv import PointError, drop_unknown_columns
 from ._units import ANGLE_UNITS, DIMENSIONLESS_UNITS, FORCE_UNITS, INVERSE_LENGTH_UNITS, TORQUE_UNITS
@@ -188,7 +188,7 @@ class HelixData(eqx.Module):
         }
         arrays = {}
         for name, x in columns.items():
-            a = np.asarray(x, dtype=float)
+            a = real_array(x, name, "HelixData")
             if a.ndim != 1:
                 raise ValueError(f"HelixData: {name} must be one-dimensional, got shape {a.shape}")
             arrays[name] = a
@@ -209,7 +209,7 @@ class HelixData(eqx.Module):
         for name, x in {**sigmas, **optional}.items():
             if x is None:
                 continue
-            a = np.asarray(x, dtype=float)
+            a = real_array(x, name, "HelixData")
             if a.ndim == 0:
                 a = np.full(n, float(a))
             if a.shape != (n,):
@@ -488,6 +488,7 @@ def synthetic_helix_data(
     jit-able (it returns validated `HelixData`).
     """
     check_quadratic_rod(rod, "synthetic_helix_data")
+    check_key(key, "synthetic_helix_data")
     observe = (observe,) if isinstance(observe, str) else tuple(observe)
     if not observe or any(q not in ("force", "moment") for q in observe):
         raise ValueError(f"observe must name 'force' and/or 'moment', got {observe!r}")
@@ -511,8 +512,10 @@ def synthetic_helix_data(
     if not (np.all(np.isfinite(F)) and np.all(np.isfinite(M))):
         raise ValueError("synthetic_helix_data: some helices have no register (kappa must be > 0 and finite)")
     if isinstance(noise, tuple):
-        sigma_f, sigma_m = float(noise[0]), float(noise[1])
-        zero = sigma_f == 0 and sigma_m == 0
+        # The deviation of a quantity not observed is not used (any positive value will do).
+        sigma_f = float(noise[0]) if "force" in observe else 1.0
+        sigma_m = float(noise[1]) if "moment" in observe else 1.0
+        zero = all(float(noise[i]) == 0 for i, q in enumerate(("force", "moment")) if q in observe)
     else:
         sigma_f, sigma_m = _noise_scale(F, float(noise)), _noise_scale(M, float(noise))
         zero = float(noise) == 0
@@ -521,7 +524,10 @@ def synthetic_helix_data(
         F_obs, M_obs = F, M
     else:
         if sigma_f <= 0 or sigma_m <= 0 or not (math.isfinite(sigma_f) and math.isfinite(sigma_m)):
-            raise ValueError(f"noise must be >= 0 and finite, got {noise}")
+            raise ValueError(
+                f"noise must be >= 0 and finite, and a pair (sigma_F, sigma_M) > 0 for each quantity observed "
+                f"(0 for all of them: exact data), got {noise}"
+            )
         F_obs = F + sigma_f * np.asarray(random_normal(key_f, F.shape))
         M_obs = M + sigma_m * np.asarray(random_normal(key_m, M.shape))
     return HelixData(

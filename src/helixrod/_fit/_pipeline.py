@@ -23,7 +23,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
 from .._compile import compile_ahead, filter_jit, jit, once_per_signature, split_arrays
-from .._misc import chi2_survival, is_concrete, json_record, json_text, write_atomically
+from .._misc import check_integer, check_key, chi2_survival, is_concrete, json_record, json_text, write_atomically
 from .._progress import ProgressArgument, batch_size, check_progress, padded_batch, progress_bar, scan_in_batches
 from .._rod import PARAMETER_NAMES, Rod, rod_from_vector, rod_vector
 from .._status import RESULTS, message, promote, raise_if_failed, result_from_name, result_name, succeeded
@@ -190,6 +190,8 @@ class StiffnessFit(eqx.Module):
 
     def interval(self, level: float = 0.95) -> dict[str, tuple[float, float]]:
         """Normal-approximation confidence intervals value ± z stderr, by name."""
+        if not 0 < level < 1:
+            raise ValueError(f"interval: level must be in (0, 1) (0.95 for 95 %), got {level}")
         z = NormalDist().inv_cdf(0.5 + level / 2)
         return {n: (float(self.params[n] - z * self.stderr[n]), float(self.params[n] + z * self.stderr[n])) for n in self.names}
 
@@ -463,6 +465,9 @@ _jacobian_and_predictions_once = jit(_jacobian_and_predictions_of, static_argnum
 
 def _solver(solver, rtol, atol, learning_rate):
     if isinstance(solver, str):
+        for name, value in (("rtol", rtol), ("atol", atol), ("learning_rate", learning_rate)):
+            if value is not None and not (np.isfinite(float(value)) and float(value) > 0):
+                raise ValueError(f"fit_stiffness: {name} must be finite and > 0, got {value}")
         return solver, make_solver(
             solver, 1e-10 if rtol is None else float(rtol), 1e-12 if atol is None else float(atol),
             1e-2 if learning_rate is None else float(learning_rate),
@@ -608,9 +613,11 @@ def fit_stiffness(
             "is differentiated in forward mode only); use 'levenberg-marquardt' or 'gauss-newton'"
         )
     adaptive = n_starts is None and model.default_starts > 1
-    n_starts = model.default_starts if n_starts is None else n_starts
-    if isinstance(n_starts, bool) or int(n_starts) < 1:
-        raise ValueError(f"n_starts must be >= 1, got {n_starts}")
+    n_starts = model.default_starts if n_starts is None else check_integer(n_starts, "n_starts", "fit_stiffness")
+    if key is not None:
+        check_key(key, "fit_stiffness")
+    if not weak_threshold > 0:
+        raise ValueError(f"fit_stiffness: weak_threshold must be > 0, got {weak_threshold}")
     if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
         raise ValueError(f"max_steps must be an integer >= 1, got {max_steps}")
     if batching not in BATCHING:

@@ -138,8 +138,15 @@ def error_analysis(
     q = np.array([float(values[n]) for n in names])
     J = np.asarray(jacobian, float)
     r = np.asarray(residuals, float)
-    m, p = J.shape
     scales = np.asarray(scales, float)
+    if J.ndim != 2 or r.shape != J.shape[:1] or J.shape[1] != len(names) or scales.shape != (len(names),):
+        raise ValueError(
+            f"error_analysis: the Jacobian must be (m, p) with m residuals and p = {len(names)} values and "
+            f"scales; got jacobian {J.shape}, residuals {r.shape}, scales {scales.shape}"
+        )
+    if not weak_threshold > 0:
+        raise ValueError(f"error_analysis: weak_threshold must be > 0, got {weak_threshold}")
+    m, p = J.shape
     Js = J * scales
     notes = list(notes)
     finite_rows = np.all(np.isfinite(Js), axis=1)

@@ -89,6 +89,19 @@ def test_load_candidates():
     assert "rank 5 of 5" in design.summary()
 
 
+def test_isotropic_coupled_nominal_rods_in_and_out_of_the_gauge(rng):
+    """The isotropic-coupled class's K23 = 0 is a gauge where the frame may turn: a nominal
+    rod with K23 != 0 (and uhat = 0) is designed for as the same rod turned into it (it was
+    "not in the model class"); with an in-plane uhat the class frees both couplings."""
+    candidates = (rng.uniform(0.3, 2.5, 12), rng.uniform(-2.0, 2.0, 12))
+    turned = hr.design_experiment(hr.Rod(1.0, 1.0, 0.8, K13=0.2, K23=0.25), candidates, 6, model="isotropic-coupled")
+    gauge = hr.design_experiment(hr.Rod(1.0, 1.0, 0.8, K13=float(np.hypot(0.2, 0.25))), candidates, 6, model="isotropic-coupled")
+    assert turned.names == gauge.names == ("K1", "K3", "K13")
+    np.testing.assert_allclose([turned.stderr[n] for n in turned.names], [gauge.stderr[n] for n in gauge.names], rtol=1e-8)
+    pinned = hr.design_experiment(hr.Rod(1.0, 1.0, 0.8, K13=0.2, K23=0.25, uhat=(0.4, 0.0, 0.2)), candidates, 6, model="isotropic-coupled")
+    assert pinned.names == ("K1", "K3", "K13", "K23")
+
+
 def test_bad_options():
     rod = hr.Rod(1.0, 1.6, 1.3, K13=0.2, K23=0.3)
     force, moment = np.linspace(-1.0, 1.0, 6), np.linspace(0.2, 2.0, 6)

@@ -6,7 +6,9 @@ The classes (Durickovic 2008, the inverse spring problem): `"isotropic"` -- $K_1
 bend-twist coupling (2 stiffnesses); `"anisotropic"` -- $K_1, K_2, K_3$, no coupling (3);
 `"isotropic-coupled"` -- $K_1 = K_2$ with a coupling (3: with isotropic bending the frame
 can be turned about $d_3$ until the coupling lies in $K_{13}$, so $K_{23} = 0$ is a choice
-of gauge, not a restriction); `"general"` -- all five.  When $\\hat u$ is fitted, the
+of gauge, not a restriction -- where the turn is free: it turns $(\hat u_1, \hat u_2)$ and
+the register too, so with an observed register or a fixed $\hat u$ that has an in-plane
+part the class frees both couplings, 4); `"general"` -- all five.  When $\\hat u$ is fitted, the
 isotropic class fixes $\\hat u_2 = 0$ the same way (`with_gauge`).  Nested pairs are read off the
 constraints: a model is nested in another when it keeps every constraint of the other.
 
@@ -37,6 +39,7 @@ from .._rod import rod_vector
 from .._status import RESULTS, result_name
 from ._helix_data import HelixData
 from ._pipeline import StiffnessFit, fit_stiffness, minimise
+from ._symmetry import coupling_gauge_free
 
 #: The model classes of the reference report, as `fit_stiffness` options.
 MODEL_CLASSES = {
@@ -205,6 +208,16 @@ def with_gauge(options: dict, fit_uhat: bool, frame_observed: bool) -> dict:
     return options
 
 
+def _in_plane_twist_pinned(fit_options: Mapping, fix: Mapping) -> bool:
+    """Whether the fits hold an in-plane intrinsic twist $(\\hat u_1, \\hat u_2) \\ne 0$
+    fixed (`uhat=`, or `fix=` of uhat1/uhat2 with `fit_uhat=True`)."""
+    if fit_options.get("fit_uhat"):
+        return any(float(fix.get(n, 0.0)) != 0.0 for n in ("uhat1", "uhat2"))
+    uhat = fit_options.get("uhat")
+    in_plane = (0.0, 0.0) if uhat is None else tuple(float(x) for x in np.asarray(uhat, float).ravel()[:2])
+    return any(x != 0.0 for x in in_plane) or any(float(fix.get(n, 0.0)) != 0.0 for n in ("uhat1", "uhat2"))
+
+
 def _constraints(spec: dict) -> frozenset:
     out = {("fix", k, float(v)) for k, v in (spec.get("fix") or {}).items()}
     return frozenset(out | ({("isotropic",)} if spec.get("isotropic") else set()))
@@ -247,9 +260,8 @@ def compare_models(
         models = tuple(MODEL_CLASSES)
     if isinstance(models, str):
         raise ValueError("compare_models: models must be a sequence or mapping of models, not one string")
-    specs = {str(m): model_options(m, m) for m in models} if not isinstance(models, Mapping) else {
-        str(n): model_options(n, s) for n, s in models.items()
-    }
+    named = {str(m): m for m in models} if not isinstance(models, Mapping) else {str(n): s for n, s in models.items()}
+    specs = {n: model_options(n, s) for n, s in named.items()}
     if len(specs) < 2:
         raise ValueError(f"compare_models: needs two models at least, got {list(specs)}")
     if isinstance(data, HelixData) and data.register_sigma is None:
@@ -258,6 +270,11 @@ def compare_models(
         fit_options.setdefault("branch", "stable")
     common_fix = dict(fit_options.pop("fix", None) or {})
     frame_observed = isinstance(data, HelixData) and data.register_sigma is not None
+    if not coupling_gauge_free(_in_plane_twist_pinned(fit_options, common_fix), frame_observed):
+        # The class's K23 = 0 is no gauge here: it frees both couplings (module docstring).
+        for n, s in named.items():
+            if isinstance(s, str) and s == "isotropic-coupled":
+                specs[n] = {**specs[n], "fix": {k: v for k, v in specs[n]["fix"].items() if k != "K23"}}
     options = {
         n: with_gauge({"isotropic": s["isotropic"], "fix": {**common_fix, **s["fix"]}}, bool(fit_options.get("fit_uhat")), frame_observed)
         for n, s in specs.items()

@@ -42,6 +42,7 @@ from ._models import forward_model
 from ._parameters import Parameterisation, resolve_fixed
 from ._pipeline import jacobian_and_predictions
 from ._report import error_analysis
+from ._symmetry import coupling_gauge_free, in_coupling_gauge
 
 CRITERIA = ("D", "A", "E")
 OBSERVABLES = (("force", "moment"), ("force",), ("moment",), ("kappa", "tau"))
@@ -226,9 +227,17 @@ def design_experiment(
             force if "force" in observe else None, moment if "moment" in observe else None, kappa, tau, s_force, s_moment
         )
     fitted = forward_model(data, branch="nearest", errors_in_variables=by_load)  # the exact (F, M): the register measured
-    uhat = None if fit_uhat else np.asarray(rod.uhat, float)
+    p_nominal = np.asarray(rod_vector(rod), float)
+    if model == "isotropic-coupled":
+        if coupling_gauge_free(not fit_uhat and bool(np.any(p_nominal[5:7] != 0)), False):
+            # The same rod (for K1 = K2, which the class check below asks) with its coupling
+            # turned into K13; the candidates' registers turn with it.
+            p_nominal = in_coupling_gauge(p_nominal)
+        else:  # the class's K23 = 0 is no gauge here: both couplings free (`compare_models`)
+            spec = {**spec, "fix": {k: v for k, v in spec["fix"].items() if k != "K23"}}
+    uhat = None if fit_uhat else p_nominal[5:]
     fixed = resolve_fixed(uhat, fit_uhat, spec["fix"], isotropic=spec["isotropic"])
-    p = dict(zip(PARAMETER_NAMES, np.asarray(rod_vector(rod), float)))
+    p = dict(zip(PARAMETER_NAMES, p_nominal))
     size = max(abs(p["K1"]), abs(p["K2"]), abs(p["K3"]))
     outside = [f"{k} = {p[k]:.6g} (the class has {v:.6g})" for k, v in fixed.items() if k in p and abs(p[k] - v) > 1e-12 * max(size, abs(v), 1e-300)]
     if spec["isotropic"] and abs(p["K1"] - p["K2"]) > 1e-12 * size:

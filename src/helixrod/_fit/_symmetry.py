@@ -135,3 +135,27 @@ def closest_in_orbit(p, target, param: Parameterisation, frame_observed: bool) -
     images = np.stack(orbit(p, param, frame_observed))
     nearest = np.argmin(np.sum(((images - np.asarray(target, float)) / scale) ** 2, axis=-1), axis=0)
     return np.take_along_axis(images, nearest[None, ..., None], axis=0)[0]
+
+
+def coupling_gauge_free(uhat_in_plane_pinned: bool, frame_observed: bool) -> bool:
+    """Whether, for a rod with isotropic bending ($K_1 = K_2$), turning the frame about
+    $d_3$ is a symmetry of the fit that can put the coupling in $K_{13}$ ($K_{23} = 0$ a
+    choice of gauge): the turn also turns $(\\hat u_1, \\hat u_2)$ and the register, so it
+    is one unless the data observe the register or $\\hat u$ has an in-plane part that the
+    fit holds fixed."""
+    return not (uhat_in_plane_pinned or frame_observed)
+
+
+def in_coupling_gauge(p) -> np.ndarray:
+    """The full physical vector `p` of a rod with $K_1 = K_2$ with its frame turned about
+    $d_3$ until its coupling lies in $K_{13} \\ge 0$ ($K_{23} = 0$), $(\\hat u_1, \\hat u_2)$
+    turned with it: the same physical rod (every helix's predictions unchanged, its
+    register turned by the same angle)."""
+    p = np.array(p, float)
+    angle = np.arctan2(p[4], p[3])
+    c, s = np.cos(angle), np.sin(angle)
+    turn = np.array([[c, s], [-s, c]])  # components in the frame turned by `angle`
+    p[3:5] = turn @ p[3:5]
+    p[5:7] = turn @ p[5:7]
+    p[4] = 0.0  # exactly
+    return p

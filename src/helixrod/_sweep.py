@@ -73,6 +73,9 @@ def _check_axis(name, x, caller="sweep") -> np.ndarray:
     x = np.asarray(x, dtype=np.float64)
     if x.ndim != 1 or x.size == 0:
         raise ValueError(f"{caller}: {name} must be a non-empty 1-D grid axis, got shape {x.shape}")
+    bad = np.flatnonzero(~np.isfinite(x))
+    if bad.size:
+        raise ValueError(f"{caller}: {name} must be finite (a grid axis), got {x[bad[0]]} at index {bad[0]}")
     return x
 
 
@@ -154,6 +157,8 @@ def _stream(point_fn, rod, kappa, tau, trailing: Mapping, chunk_size, progress, 
     """Evaluate `point_fn` over the grid in fixed-size chunks; returns numpy arrays of
     shape `(len(kappa), len(tau)) + trailing[name][0]` and dtype `trailing[name][1]`."""
     devices = tuple(jax.local_devices() if devices is None else devices)
+    if not devices:
+        raise ValueError(f"{description}: devices must name at least one device (default: jax.local_devices())")
     n_dev = len(devices)
     total = kappa.size * tau.size
     if chunk_size is None:
@@ -453,6 +458,10 @@ class Sensitivity(collections.abc.Mapping):
     def of(self, parameter: str, name: str = "force_elasticity") -> np.ndarray:
         """The slice of output `name` (a derivative or elasticity field) for one parameter
         of `wrt`: shape `(len(kappa), len(tau), 4)`, one value per register slot."""
+        if parameter not in self.wrt:
+            raise ValueError(f"sensitivity: {parameter!r} is not among the parameters differentiated, wrt = {self.wrt}")
+        if name not in self._arrays:
+            raise ValueError(f"sensitivity: no output {name!r}; outputs are {list(self._arrays)}")
         return self._arrays[name][..., self.wrt.index(parameter)]
 
     def __getitem__(self, name):

@@ -547,6 +547,8 @@ def stability_atlas(
     dtype = float_dtype()
     kappa, tau = (jnp.asarray(a, dtype) for a in (kappa, tau))
     for name, a in (("kappa", kappa), ("tau", tau)):
+        if a.size == 0:
+            raise ValueError(f"{owner}: {name} is empty (no helix to test)")
         if not np.all(np.isfinite(np.asarray(a))):
             raise ValueError(f"{owner}: {name} must be finite")
     try:

@@ -73,6 +73,8 @@ def test_bad_input():
         helixrod.stability_atlas(ROD, 1.0, 0.5, -1.0)
     with pytest.raises(ValueError, match="broadcast"):
         helixrod.stability_atlas(ROD, jnp.ones(3), jnp.ones(4), 5.0)
+    with pytest.raises(ValueError, match="pieces must be at most 1024"):
+        helixrod.stability_atlas(ROD, 1.0, 0.5, 5.0, pieces=10**6)
     with pytest.raises(ValueError, match="kappa is empty"):
         helixrod.stability_atlas(ROD, jnp.zeros(0), jnp.zeros(0), 5.0)
 

@@ -319,6 +319,7 @@ def test_options_reject_bad_values():
         ({"ode_atol": jnp.ones(2)}, "ode_atol must be a scalar"),
         ({"ode_rtol": np.ones(3)}, "ode_rtol must be a scalar"),
         ({"atol": "tight"}, "atol must be a number, got 'tight'"),
+        ({"stability_pieces": 10**6}, "stability_pieces must be at most 1024"),  # a dense Hessian: out of memory
     ]:
         with pytest.raises(ValueError, match="BoundaryValueOptions: " + match):
             hr.BoundaryValueOptions(**kwargs)

@@ -18,6 +18,10 @@ from .._misc import as_float, check_choice, check_integer, is_concrete
 #: The smallest tolerance a solve is asked for, in machine epsilons of its precision.
 TOLERANCE_EPSILONS = 100
 
+#: The most pieces of a stability test: its Hessian is dense, (6p)^2 numbers (302 MB at
+#: 1024 pieces); more ran out of memory inside XLA.
+MAX_TEST_PIECES = 1024
+
 #: Root-finder steps: damped (Levenberg--Marquardt) or plain Newton steps.
 METHODS = ("levenberg-marquardt", "newton")
 
@@ -85,6 +89,8 @@ class BoundaryValueOptions(eqx.Module):
         check_integer(self.max_steps, "max_steps", owner)
         check_integer(self.max_ode_steps, "max_ode_steps", owner)
         check_integer(self.stability_pieces, "stability_pieces", owner, minimum=0)
+        if self.stability_pieces > MAX_TEST_PIECES:
+            raise ValueError(f"{owner}: stability_pieces must be at most {MAX_TEST_PIECES} (a dense Hessian of 6 per piece), got {self.stability_pieces}")
         check_choice(self.method, METHODS, "method", owner)
         for name in ("atol", "ode_rtol", "ode_atol"):
             value = getattr(self, name)

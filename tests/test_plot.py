@@ -86,3 +86,34 @@ def test_bad_figure_arguments_are_named(sens):
             plot.plot_helix(1.0, 0.5, **options)
     with pytest.raises(ValueError, match="plot_stability_atlas: slot must be 0, 1, 2 or 3"):
         plot.plot_stability_atlas(None, slot=1.5)
+
+
+def test_stability_atlas_figure_shows_undefined_points_as_such():
+    """Points whose critical length is not defined (NaN: no register, or not resolved) are
+    grey on the right panel -- not white, which says stable up to max_length -- and the L_c
+    = L contour does not run along their edge; an atlas without critical lengths says so."""
+    import matplotlib.pyplot as plt
+    from types import SimpleNamespace
+
+    kappa, tau = np.meshgrid(np.linspace(0.2, 2.0, 4), np.linspace(-1.0, 1.0, 4), indexing="ij")
+    critical = np.full((4, 4, 4), np.inf)
+    critical[0, :2, 0] = np.nan  # not resolved
+    critical[3, :, 0] = 3.0  # unstable at L = 5
+    kind = np.where(np.isnan(critical), -1, np.where(np.isfinite(critical), 2, 0))
+    fields = dict(
+        kappa=kappa, tau=tau, length=5.0, max_length=20.0, valid=np.ones((4, 4, 4), bool),
+        instability_index=np.where(np.isnan(critical), -1, np.where(critical < 5.0, 1, 0)),
+        pointwise_stable=np.ones((4, 4, 4), bool), critical_length=critical, instability_type=kind,
+    )
+    fig = plot.plot_stability_atlas(SimpleNamespace(**fields))
+    right = fig.axes[1]
+    labels = [t.get_text() for t in right.get_legend().get_texts()]
+    assert "no register, or not resolved" in labels
+    grey = [m for m in right.collections if type(m).__name__ == "QuadMesh" and np.ma.count(m.get_array()) == 2]
+    assert len(grey) == 1  # the two undefined points, in their own mesh
+    assert "white: stable up to 20" in right.get_title()
+    plt.close(fig)
+    fields.update(critical_length=np.full((4, 4, 4), np.nan), instability_type=np.zeros((4, 4, 4), int))
+    fig = plot.plot_stability_atlas(SimpleNamespace(**fields))
+    assert fig.axes[1].get_title() == "critical lengths not computed (critical_length=False)"
+    plt.close(fig)

@@ -610,8 +610,10 @@ def plot_stability_atlas(atlas, path=None, *, slot=0):
     length $L$ clamped by its own wrench is stable (and how many unstable directions it
     has), with the pointwise criterion of `helix_equilibria` (a minimum of $W$ on the
     circle) outlined; right, the critical length at which it first loses stability, on a
-    log scale, white where it stays stable up to `max_length`, marked by the type of that loss
-    of stability (`instability_type`: o fold, x symmetry-breaking)."""
+    log scale, white where it stays stable up to `max_length`, grey where it is not defined
+    (no register, or not resolved: NaN), marked by the type of that loss of stability
+    (`instability_type`: o fold, x symmetry-breaking); empty, and titled so, for an atlas
+    computed with `critical_length=False`."""
     from matplotlib.colors import BoundaryNorm, ListedColormap, LogNorm
     from matplotlib.patches import Patch
 
@@ -634,23 +636,35 @@ def plot_stability_atlas(atlas, path=None, *, slot=0):
     axes[0].legend(handles=handles, loc="upper left", fontsize=7, framealpha=0.9)
     axes[0].set_title(f"clamped helix of length $L = {float(atlas.length):.4g}$, register slot {slot}")
     critical = np.asarray(atlas.critical_length[..., slot], float)
+    kind = np.asarray(atlas.instability_type[..., slot])
+    # Not asked for: NaN everywhere with no point flagged undefined (-1).
+    computed = bool(np.any(~np.isnan(critical)) or np.any(kind == -1))
+    undefined = np.isnan(critical)
+    type_handles = []
+    if computed and undefined.any():
+        grey = _STABILITY_CLASSES[0][1]
+        axes[1].pcolormesh(tau, kappa, np.where(undefined, 1.0, np.nan), cmap=ListedColormap([grey]), shading="nearest", rasterized=True)
+        type_handles.append(Patch(facecolor=grey, edgecolor="k", lw=0.4, label=_STABILITY_CLASSES[0][0]))
     finite = critical[np.isfinite(critical) & (critical > 0)]
     if finite.size:
         mesh = axes[1].pcolormesh(tau, kappa, np.where(np.isfinite(critical), critical, np.nan), cmap="cividis",
                                   norm=LogNorm(finite.min(), max(finite.max(), finite.min() * 1.01)), shading="nearest", rasterized=True)
         fig.colorbar(mesh, ax=axes[1], label="critical length $L_c$")
         if finite.min() < float(atlas.length) < finite.max():
-            axes[1].contour(tau, kappa, np.nan_to_num(critical, nan=0.0, posinf=1e300), levels=[float(atlas.length)], colors=[OKABE_ITO[1]], linewidths=1.2)
+            # Undefined points are masked: no contour along their edge.
+            levels = np.ma.masked_invalid(np.where(np.isposinf(critical), 1e300, critical))
+            axes[1].contour(tau, kappa, levels, levels=[float(atlas.length)], colors=[OKABE_ITO[1]], linewidths=1.2)
     # The type of that loss of stability, a marker per grid point (codes of INSTABILITY_TYPES).
-    kind = np.asarray(atlas.instability_type[..., slot])
-    type_handles = []
     for code, style, label in ((1, dict(marker="o", facecolors="none", edgecolors="k"), "fold"), (2, dict(marker="x", c="k"), "symmetry-breaking")):
         where = kind == code
         if where.any():
             type_handles.append(axes[1].scatter(tau[where], kappa[where], s=12, linewidths=0.8, label=label, **style))
     if type_handles:
         axes[1].legend(handles=type_handles, loc="upper left", fontsize=7, framealpha=0.9)
-    axes[1].set_title(f"first loss of stability (white: stable up to {float(atlas.max_length):.4g})")
+    if computed:
+        axes[1].set_title(f"first loss of stability (white: stable up to {float(atlas.max_length):.4g})")
+    else:
+        axes[1].set_title("critical lengths not computed (critical_length=False)")
     for ax in axes:
         ax.set_xlabel("torsion $\\tau$")
         ax.set_ylabel("curvature $\\kappa$")

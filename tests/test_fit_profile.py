@@ -114,5 +114,7 @@ def test_propagate_marks_what_the_data_do_not_determine(tmp_path):
     gradient = np.array([-1.0, 0.0, 1.0, 0.0, 0.0])
     np.testing.assert_allclose(stderr["difference"], np.sqrt(gradient @ cov @ gradient), rtol=1e-10)
     np.testing.assert_allclose(values["difference"], rod.K3 - rod.K1, atol=5 * float(stderr["difference"]))
+    _, stacked = fit.propagate(lambda r, p: jax.numpy.stack([r.K1, r.K3 - r.K1]))  # an array of quantities
+    assert np.isinf(stacked[0]) and float(stacked[1]) == pytest.approx(float(stderr["difference"]), rel=1e-12)
     fit.save(tmp_path / "fit.json")
     np.testing.assert_allclose(hr.StiffnessFit.load(tmp_path / "fit.json").identifiability.null_directions, null, rtol=1e-14)

@@ -185,6 +185,11 @@ def test_cli_tweezer_fit_on_a_subset(example, tmp_path):
     assert (tmp_path / "fit.png").stat().st_size > 10_000
     assert subset.n_points == 22 and summary["profile_intervals"] == {}
     assert hr.StiffnessFit.load(tmp_path / "fit.json").params.keys() == summary["params"].keys()  # a saved fit
+    # A profile of a name that is no free parameter fails after the results are written.
+    args = ["tweezer-fit", str(tmp_path / "subset.csv"), "--out", str(tmp_path / "again.json"), "--profile", "K2x"]
+    result = CliRunner(env={"COLUMNS": "200"}).invoke(app, args)
+    assert result.exit_code == 2 and "error: --profile K2x: not a free parameter of the fit" in result.output
+    assert json.loads((tmp_path / "again.json").read_text())["names"] == summary["names"]
 
 
 @pytest.mark.slow
@@ -220,6 +225,7 @@ def test_parse_fix():
         (["DATA", "--fix", "K13=0,K13=1"], "error: --fix names K13 twice"),
         (["DATA", "--n-bp", "-5"], "error: --n-bp must be a positive number of base pairs"),
         (["DATA", "--profile", "K1"], "error: --profile K1: that parameter is held fixed (--fix)"),
+        (["DATA", "--profile", "uhat2"], "error: --profile uhat2: uhat is held at the B-DNA helix"),
         (["BAD"], "bad.csv:2: units line has 2 cells, header has 5"),
     ],
 )

@@ -179,7 +179,8 @@ class StiffnessFit(eqx.Module):
 
             def stderr(j):
                 variance = jnp.maximum(jnp.einsum("...i,ij,...j->...", j, cov, j), 0.0)
-                scaled = j * scales  # the report's parameters, in which the null directions are unit vectors
+                # The report's parameters, in which the null directions are unit vectors.
+                scaled = j * scales.reshape((1,) * (j.ndim - 1) + scales.shape)
                 along = jnp.abs(scaled @ null.T)
                 undetermined = jnp.any(along > 1e-6 * jnp.linalg.norm(scaled, axis=-1, keepdims=True), axis=-1)
                 return jnp.where(undetermined, jnp.inf, jnp.sqrt(variance))

@@ -162,6 +162,8 @@ def tweezer_fit_command(
     for name in profile or ():
         if name in fixed:
             _fail(console, f"--profile {name}: that parameter is held fixed (--fix); profile a free one")
+        if name in ("uhat1", "uhat2", "uhat3"):
+            _fail(console, f"--profile {name}: uhat is held at the B-DNA helix; profile a free parameter")
     if n_bp is not None and not (math.isfinite(n_bp) and n_bp > 0):
         _fail(console, f"--n-bp must be a positive number of base pairs, got {n_bp:g}")
     try:
@@ -190,10 +192,10 @@ def tweezer_fit_command(
         soft_wrap=True,
     )
     moduli = print_tweezer_fit(console, fit, observations, fixed)
+    # Which parameters are free is known after the fit (its molecules' offsets): an unknown
+    # name fails after the results that need no profile are written, not before.
     unknown = [name for name in profile or () if name not in fit.names]
-    if unknown:
-        _fail(console, f"--profile {', '.join(unknown)}: not a free parameter of the fit; free: {', '.join(fit.names)}")
-    profiles = {name: profile_likelihood(fit, name) for name in profile or ()}
+    profiles = {name: profile_likelihood(fit, name) for name in profile or () if name in fit.names}
     if profiles:
         print_profiles(console, fit, profiles)
     if out is not None:
@@ -207,3 +209,5 @@ def tweezer_fit_command(
     if plot is not None:
         plot_tweezer_fit(fit, observations, plot)
         console.print(f"wrote {escape(str(plot))}")
+    if unknown:
+        _fail(console, f"--profile {', '.join(unknown)}: not a free parameter of the fit; free: {', '.join(fit.names)}")

@@ -99,3 +99,14 @@ def test_help_shows_no_value_for_plain_flags():
         assert "--help" in result.output
         flagged = [line for line in result.output.splitlines() if "<bool>" in line]
         assert flagged == [], (command, flagged)
+
+
+def test_tables_keep_whole_numbers_when_not_on_a_terminal(monkeypatch):
+    """Redirected output (a log) is not cut to rich's 80 columns: a wide table keeps its
+    numbers whole, with no ellipsis."""
+    from helixrod.cli._console import LOG_WIDTH, command_console
+
+    monkeypatch.delenv("COLUMNS", raising=False)
+    assert command_console().width == LOG_WIDTH  # pytest's output is not a terminal
+    monkeypatch.setenv("COLUMNS", "90")
+    assert command_console().width == 90

@@ -7,11 +7,11 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 import typer
-from rich.console import Console
 from rich.table import Table
 
 from .. import HelixData, Rod, dna, fit_stiffness, helix_equilibria
 from ..plot import plot_fit, plot_hyperboloid, plot_rod_atlas, plot_tweezer_fit
+from ._console import command_console
 from ._fit import example_data_path
 from ._paths import output_folder
 from ._report import print_fit
@@ -26,7 +26,7 @@ def demo(
     atlas), then two fits to bundled synthetic datasets: the inverse spring problem on the
     example spring, and DNA tweezer curves (``helixrod tweezer-fit`` on
     `dna.load_tweezer_curves_example`: what they determine, the fit and its figure)."""
-    console = Console()
+    console = command_console()
     rod = Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
     console.print(
         "Rod: K1 = 1, K2 = 3/2, K3 = 0.8, K13 = K23 = 1/2, uhat = (1, 0, 0) "

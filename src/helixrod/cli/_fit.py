@@ -6,11 +6,11 @@ from pathlib import Path
 
 import jax
 import typer
-from rich.console import Console
 
 from .. import MODEL_CLASSES, HelixData, compare_models, fit_stiffness
 from .._misc import json_text, write_atomically
 from ..plot import plot_fit, plot_model_comparison
+from ._console import command_console
 from ._numbers import assignments, numbers
 from ._paths import input_file, output_file, read_with_notes
 from ._report import print_comparison, print_fit
@@ -55,7 +55,7 @@ def fit(
     ),
 ) -> None:
     """Fit K1, K2, K3, K13, K23 (and uhat) to measured helices (the inverse spring problem)."""
-    console = Console()
+    console = command_console()
     fixed = assignments(fix, "--fix")
     input_file(data, "DATA")
     output_file(out, "--out")

@@ -9,13 +9,13 @@ from pathlib import Path
 import jax
 import numpy as np
 import typer
-from rich.console import Console
 from rich.table import Table
 
 from .. import RESULTS, force_extension
 from .._misc import json_text, write_atomically
 from .._status import has_code
 from ..plot import plot_response
+from ._console import command_console
 from ._numbers import grid, rod_option
 from ._paths import output_file
 
@@ -47,7 +47,7 @@ def force_extension_command(
     ),
 ) -> None:
     """Force-extension curve of a finite clamped rod against the uniform-helix (bulk) formula."""
-    console = Console()
+    console = command_console()
     the_rod = rod_option(rod, uhat)
     output_file(out, "--out")
     output_file(plot, "--plot", figure=True)

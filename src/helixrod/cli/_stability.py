@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import typer
-from rich.console import Console
 
+from ._console import command_console
 from ._numbers import grid, rod_option
 from ._paths import output_file
 
@@ -37,7 +37,7 @@ def stability_command(
     from .._misc import write_atomically
     from ..plot import plot_stability_atlas
 
-    console = Console()
+    console = command_console()
     the_rod = rod_option(rod, uhat)
     output_file(out, "--out")
     output_file(plot, "--plot", figure=True)

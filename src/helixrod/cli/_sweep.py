@@ -8,11 +8,11 @@ from pathlib import Path
 import jax
 import numpy as np
 import typer
-from rich.console import Console
 
 from .. import save_sweep, sweep
 from .._plot import SUMMARY_FIELDS
 from ..plot import plot_sweep_summary
+from ._console import command_console
 from ._numbers import grid, rod_option
 from ._paths import output_file
 
@@ -31,7 +31,7 @@ def sweep_command(
     ),
 ) -> None:
     """Sweep the kappa-tau plane: registers, stability and wrench of every uniform helix."""
-    console = Console()
+    console = command_console()
     the_rod = rod_option(rod, uhat)
     output_file(out, "--out")
     output_file(plot, "--plot", figure=True)

@@ -9,12 +9,12 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 import typer
-from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
 from .. import dna, fit_stiffness, profile_likelihood
 from ..plot import plot_tweezer_fit
+from ._console import command_console
 from ._numbers import assignments
 from ._paths import input_file, output_file, read_with_notes
 from ._report import chi2_warning
@@ -154,7 +154,7 @@ def tweezer_fit_command(
     curves, hat curves, measured torques.  uhat is the B-DNA backbone helix and the start the
     rod of the bundled example (dna.load_tweezer_example).  Prints the parameters with
     standard errors and the zero-load moduli S, C, g of the fitted rod."""
-    console = Console()
+    console = command_console()
     try:
         fixed = parse_fix(fix)
     except FixError as error:

@@ -6,8 +6,8 @@ The classes (Durickovic 2008, the inverse spring problem): `"isotropic"` -- $K_1
 bend-twist coupling (2 stiffnesses); `"anisotropic"` -- $K_1, K_2, K_3$, no coupling (3);
 `"isotropic-coupled"` -- $K_1 = K_2$ with a coupling (3: with isotropic bending the frame
 can be turned about $d_3$ until the coupling lies in $K_{13}$, so $K_{23} = 0$ is a choice
-of gauge, not a restriction -- where the turn is free: it turns $(\hat u_1, \hat u_2)$ and
-the register too, so with an observed register or a fixed $\hat u$ that has an in-plane
+of gauge, not a restriction -- where the turn is free: it turns $(\\hat u_1, \\hat u_2)$ and
+the register too, so with an observed register or a fixed $\\hat u$ that has an in-plane
 part the class frees both couplings, 4); `"general"` -- all five.  When $\\hat u$ is fitted, the
 isotropic class fixes $\\hat u_2 = 0$ the same way (`with_gauge`).  Nested pairs are read off the
 constraints: a model is nested in another when it keeps every constraint of the other.

@@ -59,9 +59,9 @@ class StiffnessFit(eqx.Module):
     Standard errors are $\\sqrt{\\mathrm{diag}\\,(J^TJ)^{-1}}$ with $J$ the Jacobian of the
     $\\sigma$-normalised residuals (sigma trusted, `absolute_sigma=True`), or that times the
     reduced $\\chi^2$ = `2 cost / (m - p)` when `absolute_sigma=False`; a parameter with
-    a share in a null direction of $J$ has `inf`.  `cost` = $\\tfrac12\\sum r^2$ as scipy;
-    The covariance is the pseudo-inverse: it has no variance along a null direction
-    (`identifiability.null_directions`), where `stderr` and `propagate` give `inf`.
+    a share in a null direction of $J$ has `inf` (the covariance is the pseudo-inverse: it
+    has no variance along a null direction, `identifiability.null_directions`, where
+    `stderr` and `propagate` give `inf`).  `cost` = $\\tfrac12\\sum r^2$ as scipy;
     `residuals` normalised, of the observations only (helix data: the F residuals of the
     points with a measured force, then the M residuals of those with a measured moment,
     then registers if fitted).  `predicted`: the model's predictions of the observed quantities

@@ -32,8 +32,11 @@ class StrainEnergyRod(eqx.Module):
     ```python
     W = lambda v: 0.5 * (v[0]**2 + 1.5 * v[1]**2 + 0.8 * v[2]**2) + 0.1 * v[0]**4
     rod = helixrod.StrainEnergyRod(W, uhat=(1.0, 0.0, 0.0))
+    n0, m0 = jnp.array([0.0, 0.0, 0.1]), jnp.array([0.2, 0.0, 0.3])   # start wrench
     sol = helixrod.solve_static(rod, n0, m0, 10.0)
     ```
+
+    `rtol`, `atol`: the tolerances of the Newton solve of the inverse law.
     """
 
     # Static (part of the rod's structure, not a leaf): a program compiled for the rod

@@ -309,10 +309,20 @@ def solve_static(
     A vmapped adaptive solve runs in lockstep: every member takes as many steps as the
     slowest (see the README for the measured cost).
 
+    **Spatially unstable states.** The initial-value problem amplifies any error -- the
+    steps' own, round-off -- like $e^{\\lambda s}$ where the state is spatially unstable
+    ($\\lambda$ = `wrench_growth_rate(rod, n0, m0)` > 0, e.g. the helix $(\\kappa, \\tau) =
+    (0.5, 1.5)$ of the README's rod, $\\lambda = 1.21$): the steps stay accurate and `ok`
+    stays true, but by $\\lambda L \\approx 30$ the solution has lost most of its digits
+    (that helix to $L = 30$: centreline 0.08 off, to $L = 100$: 78 off).  Integrate such
+    states over lengths with $\\lambda L$ of a few at most, or solve the boundary-value
+    problem with `segments` (`solve_boundary_value`).
+
     **Example**
 
     ```python
-    eq = helixrod.helix_equilibria(rod, 0.5, 1.5)
+    rod = helixrod.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
+    eq = helixrod.helix_equilibria(rod, 1.0, 0.5)   # wrench_growth_rate of its slot 0: 0
     n0, m0, frame0, x0 = helixrod.helix_initial_conditions(eq)
     sol = helixrod.solve_static(rod, n0[0], m0[0], 100.0, frame0=frame0[0], x0=x0[0],
                                 saveat=jnp.linspace(0, 100, 500), outputs="centreline")

@@ -62,6 +62,12 @@ def helices_under_load(
     distinct solutions are returned.  A solution is found reliably when the box contains
     it and the lattice resolves it (two solutions on one branch closer than a cell can
     merge: raise `grid`).  Scalar `force`, `moment`; `jax.vmap` for many.  jit-safe.
+
+    `newton_steps`: Newton steps from each seed (the first `4 max_solutions` seeds); a
+    solution counts when $|F - F_0|$ and $|M - M_0|$ are at most `rtol` times the scale of
+    the load (the larger of $|F_0|$ and the box's mean $|F|$, and so for $M$); at most
+    `max_solutions` are returned (if `valid` is full, raise it: others may have been left
+    out).
     """
     check_quadratic_rod(rod, "helices_under_load")
     if grid < 2 or max_solutions < 1:

@@ -493,8 +493,8 @@ def sensitivity(
     infinite at a tangent (fold) register.  Also returns the elasticities
     $(\\theta/F)\\,\\partial F/\\partial\\theta$ and $(\\theta/M)\\,\\partial M/\\partial\\theta$
     (infinite where $F$ or $M$ vanishes, zero for a parameter that is zero).  Invalid
-    slots are NaN.  Streams, shards and shows `progress` exactly as `sweep`.  Returns a
-    `Sensitivity`.
+    slots are NaN.  Streams, shards and shows `progress` exactly as `sweep` (`chunk_size`,
+    `devices` as there).  Returns a `Sensitivity`.
     """
     wrt = _check_wrt(wrt)
     _check_rod(rod, "sensitivity")

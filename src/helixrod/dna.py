@@ -13,6 +13,7 @@ observables) bad concrete values raise `ValueError` and traced ones give NaN.
 **Example**
 
 ```python
+import jax.numpy as jnp
 from helixrod import dna
 kappa0, tau0, ell = dna.helix_from_bdna()           # 1/nm, 1/nm, nm per bp
 dna.persistence_length(410.0)                       # twist modulus 410 pN nm^2 -> ~100 nm

@@ -516,7 +516,10 @@ def fit_stiffness(
     - `HelixData`: the axial force and moment of one register per measured helix;
     - `EndResponseData`: the two measured end responses (force, moment, extension,
       rotation) of a finite rod of known length, each point a `solve_boundary_value` solve;
-    - `ShapeData`: centreline points of a finite rod under known end loads.
+    - `ShapeData`: centreline points of a finite rod under known end loads;
+    - `dna.TweezerData`: extension (and torque) of tethered molecules against force and
+      turns or torque (`tweezer_response`), with the model's persistence lengths (and bead
+      offsets) as parameters beside the rod's.
 
     Finite-rod models are differentiated through the shooting root in forward mode (the
     same parameterisation, solver, covariance and identifiability report).
@@ -561,6 +564,10 @@ def fit_stiffness(
       `max_steps` (>= 1) per start.
     - `absolute_sigma`: True (default) trusts the sigmas; False scales the covariance by
       the reduced $\\chi^2$ (use when the sigmas are only relative weights).
+    - `weak_threshold` (> 0): the scaled standard error above which a direction of the
+      parameters is reported as weakly determined (`Identifiability.weak`).
+    - Tweezer data only: `fit_offsets` -- fit one bead-height offset per molecule
+      (default off; the command line's `tweezer-fit` turns it on).
     - Helix data only: `branch` -- which register a point is matched to: `"nearest"`
       (the register whose (F, M) is closest to the observation in sigma units),
       `"stable"` (the nearest stable one), `"min-energy"` (slot 0, the global energy

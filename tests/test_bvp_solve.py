@@ -573,6 +573,25 @@ def test_multiple_shooting_reaches_where_single_shooting_fails():
     np.testing.assert_allclose(fallback.force, multiple.force, atol=1e-8)
 
 
+@pytest.mark.heavy
+def test_homotopy_continuation_and_the_fallbacks_that_use_it():
+    """The homotopy path compiles and solves (its root finder's LAPACK solve lost its typed
+    FFI call in XLA's conversion of that program, jaxlib 0.10.2: 'No registered
+    implementation for untyped custom call to lapack_dgetrf_ffi'); so do the eager defaults
+    that fall back to it: a point-loaded column past Euler's load, whose only state is the
+    straight one (reported unstable), and a straight rod twisted by more than pi."""
+    rod = hr.Rod(1.0, 1.5, 0.8)
+    homotopy = hr.solve_boundary_value(rod, 1.0, end=hr.Loaded(force=jnp.array([0.0, 0.0, -1.0])), continuation=4)
+    np.testing.assert_allclose(homotopy.force, [0.0, 0.0, -1.0], atol=1e-12)
+    column = hr.solve_boundary_value(rod, 1.0, end=hr.Loaded(force=[0.0, 0.0, -3.0], point=[0.0, 0.0, 1.0]), throw=False)
+    assert bool(column.ok) and int(column.instability_index) == 1
+    start, end = hr.axial_ends(rod, 1.0, force=1.0, rotation=4.5)
+    twisted = hr.solve_boundary_value(rod, 1.0, start=start, end=end)
+    assert int(twisted.instability_index) == 0
+    np.testing.assert_allclose(twisted.rotation, 4.5, atol=1e-9)
+    np.testing.assert_allclose(twisted.moment0[2], 0.8 * 4.5, rtol=1e-9)  # K3 times the twist
+
+
 _FLOAT32_SOLVE = """
 import json, jax, jax.numpy as jnp
 import helixrod as hr

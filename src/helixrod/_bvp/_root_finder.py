@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array
 
-from .._misc import tree_where
+from .._misc import solve_small, tree_where
 
 # A Broyden step that reduces |f| by less than this factor asks for a fresh Jacobian.
 SLOW_PROGRESS = 0.1
@@ -101,10 +101,10 @@ class LevenbergMarquardtBroyden(optx.AbstractRootFinder):
             damping = jnp.where(accept, jnp.maximum(state.damping / 10, 1e-12), state.damping * 10)
             jtj = jac_best.T @ jac_best
             lhs = jtj + damping * jnp.diag(jnp.maximum(jnp.diag(jtj), 1e-300))
-            delta = jnp.linalg.solve(lhs, jac_best.T @ f_best)
+            delta = solve_small(lhs, jac_best.T @ f_best)
         else:
             damping = jnp.where(accept, state.damping, jnp.inf)
-            delta = jnp.linalg.solve(jac_best, f_best)
+            delta = solve_small(jac_best, f_best)
         delta = jnp.where(jnp.all(jnp.isfinite(delta)), delta, 0.0)
         # Relinearise after slow progress, or after a rejected step taken with a secant
         # Jacobian (a rejected step with an exact one only needs more damping).

@@ -55,6 +55,20 @@ def test_critical_length_agrees_with_the_index(atlas):
     assert np.array_equal(np.asarray(atlas.stable)[defined], index == 0)
 
 
+def test_the_atlas_is_the_same_in_any_units(atlas):
+    """Index, margin and stability are dimensionless and the critical length a length: the
+    atlas of the same rods in SI units (stiffness 1e-28 N m^2, lengths of 1e-9 m) is the
+    atlas in the rod's own units (it was 'not resolved' everywhere: the matrix exponential's
+    range check saw the units of K^-1)."""
+    c, l = 1e-28, 1e-9
+    rod = helixrod.Rod(c * ROD.K1, c * ROD.K2, c * ROD.K3, uhat=ROD.uhat / l)
+    scaled = helixrod.stability_atlas(rod, atlas.kappa / l, atlas.tau / l, 5.0 * l)
+    np.testing.assert_array_equal(scaled.instability_index, atlas.instability_index)
+    np.testing.assert_array_equal(scaled.stable, atlas.stable)
+    np.testing.assert_allclose(scaled.stability_margin, atlas.stability_margin, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(scaled.critical_length / l, atlas.critical_length, rtol=1e-6)  # its bisection
+
+
 def test_critical_length_is_where_the_boundary_value_solve_loses_stability(atlas):
     eq = helixrod.helix_equilibria(ROD, atlas.kappa, atlas.tau)
     critical = np.where(np.asarray(atlas.valid), np.asarray(atlas.critical_length), np.inf)

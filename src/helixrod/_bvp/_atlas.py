@@ -64,7 +64,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._compile import committed_placement, compile_ahead, filter_jit, jit, leaf_shapes, once_per_signature
 from .._equilibria import helix_equilibria
 from .._misc import check_integer, finite_scalar, float_dtype, solve_small
-from .._lie import hat, so3_exp
+from .._lie import hat, se3_exp, so3_exp
 from .._progress import ProgressArgument, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import check_one_rod, check_quadratic_rod
 from ._ends import CLAMPED, end_condition
@@ -144,9 +144,8 @@ def uniform_transfers(rod, n, m, length, pieces: int):
         return jax.scipy.linalg.block_diag(D1, D1, D1, D1) @ T_body @ jax.scipy.linalg.block_diag(D0, D0, D0, D0).T
 
     transfers = jax.vmap(lab)(frames[:-1], frames[1:])
-    # The centreline's end: the helix's screw motion, from the same exponential.
-    se3 = jnp.zeros((4, 4), n.dtype).at[:3, :3].set(hat(u)).at[3 - 1, 3].set(1.0)
-    end_position = _expm(se3 * length)[:3, 3]
+    # The centreline's end: the helix's screw motion (in closed form: any number of turns).
+    end_position = se3_exp(u * length, jnp.zeros(3, n.dtype).at[2].set(length))[1]
     return transfers, n, end_position
 
 
@@ -174,7 +173,8 @@ EXPM_SQUARINGS, EXPM_TERMS, EXPM_RANGE = 16, 12, 600.0
 def _expm(A):
     """$e^A$ by a Taylor polynomial of $A/2^{16}$ and 16 squarings: no data-dependent loop
     (`jax.scipy.linalg.expm` chooses its squarings from the norm, a loop that, batched,
-    was measured to stall); NaN beyond `EXPM_RANGE`."""
+    was measured to stall); NaN beyond `EXPM_RANGE`.  For `_body_variation_matrix`, whose
+    blocks carry units, through `_variation_exponential`."""
     scaled = A / 2.0**EXPM_SQUARINGS
     eye = jnp.eye(A.shape[-1], dtype=A.dtype)
     E = eye
@@ -183,6 +183,20 @@ def _expm(A):
     for _ in range(EXPM_SQUARINGS):
         E = E @ E
     return jnp.where(jnp.sum(jnp.abs(A), axis=0).max() <= EXPM_RANGE, E, jnp.nan)
+
+
+def _variation_exponential(rod, A, s, length_scale):
+    """$e^{As}$ of the body variation matrix `A` (`_body_variation_matrix`), computed in
+    variables made dimensionless by `length_scale` and the rod's mean stiffness $\\bar K$
+    (positions over the length, forces over $\\bar K/\\ell^2$, moments over $\\bar K/\\ell$:
+    a similarity, $e^{As} = D^{-1}e^{DAD^{-1}s}D$), so that `_expm`'s range is one of
+    dimensionless rates: in raw units $\\partial u/\\partial m = K^{-1}$ alone exceeded it
+    for a rod in SI units, and every helix came out not resolved."""
+    k_mean = stiffness_range(rod)[1]
+    ones = jnp.ones(3, A.dtype)
+    d = jnp.concatenate([ones / length_scale, ones, ones * length_scale**2 / k_mean, ones * length_scale / k_mean])
+    E = _expm(d[:, None] * A / d[None, :] * s)
+    return E * d[None, :] / d[:, None]
 
 
 def _to_lab(n, m, sign=1.0):
@@ -203,7 +217,7 @@ def _body_transfer(rod, n, m, s, exponential=None):
     ones for a start at the identity frame, up to the end's rotation); `exponential`:
     $e^{As}$ of `_body_variation_matrix`, where the caller has it."""
     if exponential is None:
-        exponential = _expm(_body_variation_matrix(rod, n, m) * s)
+        exponential = _variation_exponential(rod, _body_variation_matrix(rod, n, m), s, s)
     T = _to_lab(n, m) @ exponential @ _to_lab(n, m, -1.0)
     return _with_extensibility(rod, T, s)
 
@@ -266,7 +280,7 @@ def _conjugate_point(rod, n, m, max_length, bisections: int):
     A = _body_variation_matrix(rod, n, m)
 
     def transfer(s, exponential=None):
-        return _body_transfer(rod, n, m, s, _expm(A * s) if exponential is None else exponential)
+        return _body_transfer(rod, n, m, s, _variation_exponential(rod, A, s, step) if exponential is None else exponential)
 
     transfer_step = transfer(step)
     H_aa, Q, H_bb = _node_blocks(transfer_step, step)
@@ -287,7 +301,7 @@ def _conjugate_point(rod, n, m, max_length, bisections: int):
     # Bisection on r in (0, step): the exponential at the midpoint is the one at the lower
     # end times that of the half-width, e^{A step / 2^(j+1)} at halving j, all squared up
     # from the smallest -- one product a halving instead of an exponential (its 28 products).
-    smallest = _expm(A * (step / 2.0**bisections))
+    smallest = _variation_exponential(rod, A, step / 2.0**bisections, step)
     _, halves = jax.lax.scan(lambda E, _: (E @ E, E), smallest, None, length=bisections)
 
     def bisect(bracket, half):

@@ -602,6 +602,53 @@ print(json.dumps({"dtype": str(sol.force.dtype), "force": sol.force.tolist(), "o
 """
 
 
+_FLOAT32_HELPERS = """
+import json, warnings, jax, jax.numpy as jnp
+import helixrod as hr
+from helixrod import dna
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    rod = hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0))
+    held = hr.helices_under_load(rod, -0.49, 0.81, kappa_max=3.0, tau_range=(-3.0, 3.0))
+    bulk = hr.bulk_helix(hr.Rod(1.0, 1.0, 1 / 1.3, uhat=(0.0, 1.0, 0.3)), 30.0, force=0.02, moment=0.05, throw=False)
+    example = dna.load_tweezer_example().rod
+    hat = dna.tweezer_response(example, 8000, 1.0, turns=jnp.array([-20.0, 0.0, 5.0, 20.0]))
+    moduli = dna.tweezer_moduli(example, jnp.array([1.0, 10.0, 40.0]))
+print(json.dumps({
+    "warnings": [str(w.message) for w in caught if "float32" in str(w.message)], "dtype": str(bulk.extension.dtype),
+    "held": int(held.valid.sum()), "bulk_ok": bool(bulk.ok), "bulk": float(bulk.extension),
+    "hat": hat.extension.tolist(), "hat_ok": bool(hat.ok.all()), "S": moduli.stretch_modulus.tolist(),
+}))
+"""
+
+
+@pytest.mark.heavy
+def test_float32_reaches_its_own_tolerances_and_says_it_is_float32():
+    """With x64 off (a subprocess) the solves with tolerances of their own ask float32 for
+    what it can give (100 epsilons, `_misc.attainable`): helices_under_load found nothing
+    (its 1e-10 on a float32 residual), bulk_helix and the tweezer model failed or gave NaN;
+    now they agree with float64 to float32's precision.  One warning says float32 is in use."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    proc = subprocess.run([sys.executable, "-c", _FLOAT32_HELPERS], capture_output=True, text=True, env=env, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out["dtype"] == "float32" and len(out["warnings"]) == 1 and "jax_enable_x64" in out["warnings"][0]
+    example = hr.dna.load_tweezer_example().rod
+    assert out["held"] == int(hr.helices_under_load(hr.Rod(1.0, 1.5, 0.8, K13=0.5, K23=0.5, uhat=(1.0, 0.0, 0.0)), -0.49, 0.81,
+                                                    kappa_max=3.0, tau_range=(-3.0, 3.0)).valid.sum()) == 4
+    bulk = hr.bulk_helix(hr.Rod(1.0, 1.0, 1 / 1.3, uhat=(0.0, 1.0, 0.3)), 30.0, force=0.02, moment=0.05)
+    assert out["bulk_ok"] and out["bulk"] == pytest.approx(float(bulk.extension), rel=1e-5)
+    hat = hr.dna.tweezer_response(example, 8000, 1.0, turns=jnp.array([-20.0, 0.0, 5.0, 20.0]))
+    assert out["hat_ok"]
+    np.testing.assert_allclose(out["hat"], hat.extension, rtol=1e-5)
+    np.testing.assert_allclose(out["S"], hr.dna.tweezer_moduli(example, jnp.array([1.0, 10.0, 40.0])).stretch_modulus, rtol=1e-5)
+
+
 @pytest.mark.heavy
 def test_the_readme_spring_solves_in_float32():
     """With x64 off (a subprocess: the session runs in float64) the README's spring converges:

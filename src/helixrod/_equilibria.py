@@ -21,7 +21,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._compile import jit
-from ._misc import as_float
+from ._misc import as_float, float_dtype
 from ._roots import cpu_kernel, register_roots
 from ._rod import Rod, check_quadratic_rod, rod_vector
 
@@ -138,7 +138,7 @@ def helix_equilibria(rod: Rod, kappa: ArrayLike, tau: ArrayLike, *, fields: Sequ
     kappa, tau = (x if hasattr(x, "dtype") else np.asarray(x) for x in (kappa, tau))
     fields = _check_fields(fields)
     shape = _check_inputs(kappa, tau)
-    dtype = jnp.result_type(float)
+    dtype = float_dtype()
     batch = rod.K1.shape
     try:
         shape = jnp.broadcast_shapes(shape, batch)

@@ -12,7 +12,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._compile import filter_jit
 from ._equilibria import helix_equilibria
-from ._misc import is_concrete
+from ._misc import attainable, is_concrete
 from ._roots import NUM_SLOTS
 from ._rod import Rod, check_quadratic_rod
 
@@ -158,7 +158,7 @@ def _under_load(rod, F0, M0, box, grid, newton_steps, max_solutions, rtol):
     evaluated = jax.eval_shape(residual, x0)
     empty = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), (x0, *evaluated))
     _, (x, r, sol) = jax.lax.fori_loop(0, newton_steps + 1, newton_step, (x0, empty))
-    ok = jnp.max(jnp.abs(r), axis=-1) <= rtol
+    ok = jnp.max(jnp.abs(r), axis=-1) <= attainable(rtol, dtype)
     inside = (x[:, 0] > 0) & (x[:, 0] <= kappa_max * (1 + 1e-12)) & (x[:, 1] >= tau_lo) & (x[:, 1] <= tau_hi)
     good = used & ok & inside
     # Drop duplicates: the same slot at the same (kappa, tau) found from several cells.

@@ -68,7 +68,7 @@ from ._compile import filter_jit
 from ._bvp import helix_under_wrench
 from ._dna import ROOM_TEMPERATURE, helix_from_bdna
 from ._dna import kT as thermal_energy
-from ._misc import float_dtype, inverse_small, is_concrete, require_valid, safe_sqrt
+from ._misc import attainable, float_dtype, inverse_small, is_concrete, require_valid, safe_sqrt
 from ._rod import check_one_rod
 from ._status import RESULTS, raise_if_failed
 
@@ -85,8 +85,9 @@ _BISECTIONS = 64
 _CHORD_STEPS = 6
 _TRIAL_NEWTON_STEPS = 16
 _NEWTON_STEP_TOLERANCE = 1e-10  # in the scaled unknowns of helix_under_wrench; two more steps follow
-# Stands for an infinite buckling torque or rotation inside the computation (finite: see there).
-NO_BUCKLING = 1e100
+# Stands for an infinite buckling torque or rotation inside the computation (finite: see
+# there; within float32's range, 3e38).
+NO_BUCKLING = 1e30
 
 
 # -- the worm-like chain -------------------------------------------------------------------
@@ -260,7 +261,8 @@ def _bulk(rod, ell, force, torque, guess=None):
     derivative, differentiated again by a fit -- with dense solves that never raise when a
     least-squares solver probes with a non-finite tangent."""
     trial, trial_result = helix_under_wrench(
-        rod, ell, force, torque, guess, max_steps=_TRIAL_NEWTON_STEPS, light=True, step_tolerance=_NEWTON_STEP_TOLERANCE
+        rod, ell, force, torque, guess, max_steps=_TRIAL_NEWTON_STEPS, light=True,
+        step_tolerance=attainable(_NEWTON_STEP_TOLERANCE, jnp.result_type(force)),
     )
     good = (trial_result == RESULTS.successful) & jnp.all(jnp.isfinite(trial))
     root = jnp.where(good, trial, jnp.asarray(rod.uhat))

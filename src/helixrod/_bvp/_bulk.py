@@ -24,7 +24,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
-from .._misc import finite_scalar, float_dtype, is_concrete, newton_iterations, no_gradient, solve_small, solve_small_linear
+from .._misc import attainable, finite_scalar, float_dtype, is_concrete, newton_iterations, no_gradient, solve_small, solve_small_linear
 from .._rod import check_one_rod
 from .._status import RESULTS, has_code, promote, raise_if_failed
 from ._ends import AXIAL_OBSERVABLES, axial_controls
@@ -246,7 +246,7 @@ def _checked(result, residual, z, args, x):
     be traced and thrown away)."""
     z, x = jax.lax.stop_gradient((z, x))
     imbalance = jnp.max(jnp.abs(residual(z, no_gradient(args))))
-    helix = (imbalance < 1e-8) & (jnp.sum(x * x) > 0) & jnp.all(jnp.isfinite(z))
+    helix = (imbalance < attainable(1e-8, z.dtype)) & (jnp.sum(x * x) > 0) & jnp.all(jnp.isfinite(z))
     return RESULTS.where(helix | (result != RESULTS.successful), result, RESULTS.residual_above_tolerance)
 
 
@@ -268,12 +268,14 @@ def _root(residual, z0, args, *, max_steps, light, newton_derivatives, step_tole
 
             z = _implicit_root(residual, jax.lax.fori_loop(0, 2, newton_step, z), args)
         return z, RESULTS.successful
-    sol = optx.root_find(residual, optx.Newton(rtol=1e-12, atol=1e-12), z0, args, max_steps=max_steps, throw=False)
+    tolerance = attainable(1e-12, z0.dtype)
+    sol = optx.root_find(residual, optx.Newton(rtol=tolerance, atol=tolerance), z0, args, max_steps=max_steps, throw=False)
     # A guess that is already the root where the Jacobian is singular (a bifurcation point:
     # the straight twisted rod at F = -K1 u3^2) makes Newton's first linear solve fail; the
     # guess is the answer there.
     result = promote(sol.result)
-    failed_at_root = (result != RESULTS.successful) & jnp.all(jnp.abs(residual(z0, no_gradient(args))) <= AT_ROOT)
+    at_root = jnp.abs(residual(z0, no_gradient(args))) <= attainable(AT_ROOT, z0.dtype)
+    failed_at_root = (result != RESULTS.successful) & jnp.all(at_root)
     return jnp.where(failed_at_root, z0, sol.value), RESULTS.where(failed_at_root, RESULTS.successful, result)
 
 

@@ -13,10 +13,7 @@ from jaxtyping import Array
 
 from .._kirchhoff import solve_static
 from .._lie import CommutatorFreeRK4, MuntheKaasRK
-from .._misc import as_float, check_choice, check_integer, is_concrete
-
-#: The smallest tolerance a solve is asked for, in machine epsilons of its precision.
-TOLERANCE_EPSILONS = 100
+from .._misc import as_float, attainable, check_choice, check_integer, is_concrete
 
 #: The most pieces of a stability test: its Hessian is dense, (6p)^2 numbers (302 MB at
 #: 1024 pieces); more ran out of memory inside XLA.
@@ -110,10 +107,9 @@ class BoundaryValueOptions(eqx.Module):
             )
 
     def for_dtype(self, dtype) -> BoundaryValueOptions:
-        """These options with every tolerance raised to at least `TOLERANCE_EPSILONS`
-        machine epsilons of `dtype` (float32: 1.2e-5), which a solve in that precision can
-        reach; in float64 the defaults are far above that floor and unchanged."""
-        floor = TOLERANCE_EPSILONS * float(jnp.finfo(dtype).eps)
+        """These options with every tolerance raised to what a solve in `dtype` can reach
+        (`_misc.attainable`)."""
+        floor = attainable(0.0, dtype)
         raise_to = lambda x: jnp.maximum(jnp.asarray(x, dtype), floor)
         return eqx.tree_at(lambda o: (o.atol, o.ode_rtol, o.ode_atol), self, tuple(raise_to(x) for x in (self.atol, self.ode_rtol, self.ode_atol)))
 

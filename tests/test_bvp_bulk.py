@@ -92,6 +92,18 @@ def test_the_straight_twisted_rod_at_its_bifurcation():
         hr.bulk_helix(rod, 1.0, force=-1.0, rotation=1.0)
 
 
+def test_an_intrinsically_straight_rod_twisted_is_its_own_bulk_state():
+    """An intrinsically straight, untwisted rod (uhat = 0): its unloaded guess u = 0 is no
+    helix (the multipliers' 1/|u| is singular, Newton's first step was NaN, every pair
+    failed and the curves' bulk columns were NaN); the guess is now the straight rod twisted
+    as the controls say, which is the bulk state: u = (0, 0, Theta/L), M = K3 Theta/L."""
+    rod = hr.Rod(1.0, 1.5, 0.8)
+    for pair in (dict(force=1.0, rotation=3.0), dict(force=1.0, moment=2.4), dict(force=-0.5, rotation=3.0)):
+        bulk = hr.bulk_helix(rod, 1.0, **pair)
+        np.testing.assert_allclose(bulk.u, [0.0, 0.0, 3.0], atol=1e-12)
+        np.testing.assert_allclose([bulk.extension, bulk.rotation, bulk.moment], [1.0, 3.0, 0.8 * 3.0], atol=1e-12)
+
+
 def test_a_bad_traced_length_is_flagged_in_every_pair():
     for controls in ({"force": 0.02, "moment": 0.01}, {"force": 0.02, "rotation": 31.0}, {"extension": 9.0, "rotation": 31.0}):
         batch = jax.vmap(lambda L: hr.bulk_helix(SPRING, L, throw=False, **controls))(jnp.array([30.0, -1.0, jnp.inf, jnp.nan]))

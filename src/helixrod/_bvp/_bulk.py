@@ -30,6 +30,16 @@ from .._status import RESULTS, has_code, promote, raise_if_failed
 from ._ends import AXIAL_OBSERVABLES, axial_controls
 
 _FORCE, _MOMENT = AXIAL_OBSERVABLES.index("force"), AXIAL_OBSERVABLES.index("moment")
+_ROTATION = AXIAL_OBSERVABLES.index("rotation")
+
+
+def _twisted_if_straight(u0, twist):
+    """The guess `u0`, or where it is zero (the unloaded state of an intrinsically straight,
+    untwisted rod: no helix, the multipliers' $1/|u|$ singular, Newton's first step NaN)
+    the straight rod twisted by `twist` about $d_3$ -- the bulk state itself wherever the
+    controls hold it straight."""
+    e3 = jnp.zeros(3, u0.dtype).at[2].set(1.0)
+    return jnp.where(jnp.all(u0 == 0), twist * e3, u0)
 
 #: The largest scaled residual of a guess taken as the root where Newton's solve failed there.
 AT_ROOT = 1e-14
@@ -189,6 +199,13 @@ def bulk_helix_at(
         k_scale = stiffness_scale(rod)
         ell = length_scale(rod, length)
         u0, m10, m20 = (jax.lax.stop_gradient(jnp.asarray(g, dtype)) for g in guess)
+        # A straight guess twisted as the controls say (the rotation, else the moment over a stiffness).
+        index_array = jnp.asarray(index)
+        twist = jnp.where(
+            jnp.any(index_array == _ROTATION), values[_ROTATION] / length,
+            jnp.where(jnp.any(index_array == _MOMENT), values[_MOMENT] / k_scale, 0.0),
+        )
+        u0 = _twisted_if_straight(u0, jax.lax.stop_gradient(twist))
         z0 = jnp.concatenate([u0 * ell, jnp.stack([m10 / k_scale, m20 * ell / k_scale])])
         args = (rod, jnp.asarray(index), values, length, jnp.stack([k_scale, ell]))
         z, result = _root(_bulk_residual, z0, args, **modes)
@@ -231,6 +248,7 @@ def helix_under_wrench(
     k_scale = stiffness_scale(rod)
     ell = length_scale(rod, jnp.asarray(length, dtype))
     u0 = jax.lax.stop_gradient(jnp.asarray(rod.uhat if guess is None else guess, dtype))
+    u0 = _twisted_if_straight(u0, jax.lax.stop_gradient(jnp.asarray(moment, dtype) / k_scale))
     args = (rod, jnp.asarray(force, dtype), jnp.asarray(moment, dtype), jnp.stack([k_scale, ell]))
     x, result = _root(
         _wrench_residual, u0 * ell, args,

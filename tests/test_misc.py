@@ -404,6 +404,17 @@ def test_replaced_is_dataclasses_replace_without_init():
     for u, v in zip(jax.tree.leaves(new), jax.tree.leaves(expected)):
         np.testing.assert_array_equal(u, v)
     assert pair.label == 1 and np.all(np.asarray(pair.b) == 1.0)  # the original is untouched
+    # Frozen, and freed when dropped: a copy made through equinox's `Module.__new__` stayed
+    # registered as being initialised (writable, and alive for the life of the process).
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        new.a = None
+    import gc
+    import weakref
+
+    ref = weakref.ref(new)
+    del new
+    gc.collect()
+    assert ref() is None
 
 
 def test_tree_where_chooses_whole_trees_per_condition():

@@ -52,6 +52,12 @@ def test_default_directory_and_errors(tmp_path, monkeypatch):
         assert hr.enable_compilation_cache(tmp_path / "new") == tmp_path / "new"
         assert jax.config.jax_compilation_cache_dir == str(tmp_path / "new") and (tmp_path / "new").is_dir()
         assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0  # small programs kept too
+        # A directory that cannot be written is read, and nothing is written (JAX warned once
+        # per program it failed to write: ~90 warnings for one curve).
+        monkeypatch.setattr(hr._cache.os, "access", lambda path, mode: False)
+        with pytest.warns(UserWarning, match="is not writable: programs are read from it, none are written"):
+            hr.enable_compilation_cache(tmp_path / "new")
+        assert jax.config.jax_persistent_cache_min_compile_time_secs == float("inf")
     finally:
         jax.config.update("jax_compilation_cache_dir", previous)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", previous_threshold)

@@ -16,6 +16,7 @@ files that is safe to delete at any time.
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import jax
@@ -59,6 +60,10 @@ def enable_compilation_cache(path: str | os.PathLike | None = None, *, min_compi
         raise ValueError(f"enable_compilation_cache: min_compile_seconds must be >= 0, got {min_compile_seconds}")
     directory.mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(directory))
+    if not os.access(directory, os.W_OK):
+        # Read what is there, write nothing: JAX warned once per program it failed to write.
+        warnings.warn(f"enable_compilation_cache: {directory} is not writable: programs are read from it, none are written")
+        min_compile_seconds = float("inf")
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_seconds))
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     _trace_cache.enable(directory)

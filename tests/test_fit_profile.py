@@ -118,3 +118,14 @@ def test_propagate_marks_what_the_data_do_not_determine(tmp_path):
     assert np.isinf(stacked[0]) and float(stacked[1]) == pytest.approx(float(stderr["difference"]), rel=1e-12)
     fit.save(tmp_path / "fit.json")
     np.testing.assert_allclose(hr.StiffnessFit.load(tmp_path / "fit.json").identifiability.null_directions, null, rtol=1e-14)
+
+
+def test_an_interval_end_past_a_failed_refit_is_unknown():
+    """A refit that failed on one side of the grid before the profile crossed its threshold
+    leaves that end unknown (NaN), not unbounded: a failed solve said (-inf, inf) before."""
+    from helixrod._fit._profile import _crossings
+
+    values = np.array([-2.0, -1.0, 0.0, 1.0, 2.0])
+    lower, upper = _crossings(values, np.array([np.nan, 1.0, 0.0, 2.0, 5.0]), 0.0, 3.84)
+    assert np.isnan(lower) and upper == pytest.approx(1.0 + (3.84 - 2.0) / 3.0)
+    assert _crossings(values, np.array([3.0, 1.0, 0.0, 1.0, 3.0]), 0.0, 3.84) == (-np.inf, np.inf)  # unbounded

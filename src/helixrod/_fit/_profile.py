@@ -33,7 +33,8 @@ class ProfileLikelihood(eqx.Module):
     """The profile of one parameter (`profile_likelihood`): the held `values`, `delta_chi2`
     at each (NaN where the refit failed), `result` per refit, the fitted `best` value, and
     `interval` (lower, upper) at `level`, where the profile crosses `threshold`; an end is
-    `-inf`/`inf` when the profile stays below it on that side of the grid (widen `span`)."""
+    `-inf`/`inf` when the profile stays below it on that side of the grid (widen `span`),
+    NaN when a refit failed on that side before it crossed (unknown, not unbounded)."""
 
     name: str = eqx.field(static=True)
     values: Float[Array, " k"]
@@ -126,8 +127,6 @@ def profile_likelihood(
 def _crossings(values, delta, best, threshold) -> tuple[float, float]:
     order = np.argsort(values)
     v, d = values[order], delta[order]
-    good = np.isfinite(d)
-    v, d = v[good], d[good]
     ends = []
     for side in (-1, 1):
         grid = v[v < best][::-1] if side < 0 else v[v > best]
@@ -135,6 +134,9 @@ def _crossings(values, delta, best, threshold) -> tuple[float, float]:
         inner_v, inner_d = best, 0.0
         crossing = -np.inf if side < 0 else np.inf
         for value, dd in zip(grid, prof):
+            if not np.isfinite(dd):  # a failed refit: where the profile crosses is unknown
+                crossing = np.nan
+                break
             if dd >= threshold:
                 crossing = inner_v + (threshold - inner_d) * (value - inner_v) / (dd - inner_d)
                 break

@@ -26,7 +26,9 @@ from ._compile import filter_jit, outside_transformations
 from ._equilibria import HelixEquilibria
 from ._geometry import helix_centreline, helix_frame
 from ._lie import BodyVelocityTerm, CommutatorFreeRK4, MuntheKaasRK, RodState, check_rotation, is_rotation, tangent
-from ._misc import as_float, differentiated_part, float_dtype, increases_within, increasing_within, is_concrete, no_gradient
+from ._misc import (
+    as_float, check_integer, differentiated_part, float_dtype, increases_within, increasing_within, is_concrete, no_gradient,
+)
 from ._rod import check_one_rod
 from ._saved_points import diffeqsolve_saving
 from ._status import RESULTS, promote, raise_if_failed
@@ -205,11 +207,10 @@ def _check_options(solver, rtol, atol, steps, max_steps) -> None:
     for name, value in (("rtol", rtol), ("atol", atol)):
         if is_concrete(value) and not (np.all(np.isfinite(np.asarray(value))) and np.all(np.asarray(value) > 0)):
             raise ValueError(f"solve_static: {name} must be finite and > 0, got {value!r}")
-    for name, value in (("steps", steps), ("max_steps", max_steps)):
-        if name == "steps" and isinstance(value, jax.Array):  # a traced count of steps (checked by its caller)
-            continue
-        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1):
-            raise ValueError(f"solve_static: {name} must be an integer >= 1, got {value!r}")
+    if max_steps is not None:
+        check_integer(max_steps, "max_steps", "solve_static")
+    if steps is not None and not isinstance(steps, jax.Array):  # a traced count of steps is checked by its caller
+        check_integer(steps, "steps", "solve_static")
 
 
 def _parse_outputs(outputs) -> tuple[bool, bool, bool]:

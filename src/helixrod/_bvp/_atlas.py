@@ -68,7 +68,7 @@ from .._lie import hat, se3_exp, so3_exp
 from .._progress import ProgressArgument, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import check_one_rod, check_quadratic_rod
 from ._ends import CLAMPED, end_condition
-from ._options import MAX_TEST_PIECES
+from ._options import check_test_pieces
 from ._stability import EXTENSIBILITY, PIECE_RESOLUTION, assess, piece_hessian, stiffness_range
 
 
@@ -573,9 +573,7 @@ def stability_atlas(
     length = finite_scalar(length, "length", owner, positive=True)
     max_length = 4 * length if max_length is None else finite_scalar(max_length, "max_length", owner, positive=True)
     bisections = check_integer(bisections, "bisections", owner)
-    pieces = check_integer(pieces, "pieces", owner)
-    if pieces > MAX_TEST_PIECES:
-        raise ValueError(f"{owner}: pieces must be at most {MAX_TEST_PIECES} (a dense Hessian of 6 per piece), got {pieces}")
+    pieces = check_test_pieces(pieces, "pieces", owner, minimum=1)
     chunk_size = check_integer(chunk_size, "chunk_size", owner)
     check_progress(progress, owner)
     helices = 4 * kappa.size

@@ -19,6 +19,16 @@ from .._misc import as_float, attainable, check_choice, check_integer, is_concre
 #: 1024 pieces); more ran out of memory inside XLA.
 MAX_TEST_PIECES = 1024
 
+
+def check_test_pieces(value, name: str, owner: str, minimum: int) -> int:
+    """`value` as an `int`, or `ValueError` unless it is an integer in [`minimum`,
+    `MAX_TEST_PIECES`]: the pieces of a stability test."""
+    value = check_integer(value, name, owner, minimum=minimum)
+    if value > MAX_TEST_PIECES:
+        raise ValueError(f"{owner}: {name} must be at most {MAX_TEST_PIECES} (a dense Hessian of 6 per piece), got {value}")
+    return value
+
+
 #: Root-finder steps: damped (Levenberg--Marquardt) or plain Newton steps.
 METHODS = ("levenberg-marquardt", "newton")
 
@@ -85,9 +95,7 @@ class BoundaryValueOptions(eqx.Module):
         check_integer(self.continuation, "continuation", owner, minimum=0)
         check_integer(self.max_steps, "max_steps", owner)
         check_integer(self.max_ode_steps, "max_ode_steps", owner)
-        check_integer(self.stability_pieces, "stability_pieces", owner, minimum=0)
-        if self.stability_pieces > MAX_TEST_PIECES:
-            raise ValueError(f"{owner}: stability_pieces must be at most {MAX_TEST_PIECES} (a dense Hessian of 6 per piece), got {self.stability_pieces}")
+        check_test_pieces(self.stability_pieces, "stability_pieces", owner, minimum=0)
         check_choice(self.method, METHODS, "method", owner)
         for name in ("atol", "ode_rtol", "ode_atol"):
             value = getattr(self, name)

@@ -626,8 +626,7 @@ def fit_stiffness(
         check_key(key, "fit_stiffness")
     if not weak_threshold > 0:
         raise ValueError(f"fit_stiffness: weak_threshold must be > 0, got {weak_threshold}")
-    if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
-        raise ValueError(f"max_steps must be an integer >= 1, got {max_steps}")
+    check_integer(max_steps, "max_steps", "fit_stiffness")
     if batching not in BATCHING:
         raise ValueError(f"batching must be 'map' or 'vmap', got {batching!r}")
     check_progress(progress, "fit_stiffness")

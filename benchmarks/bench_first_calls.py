@@ -80,6 +80,25 @@ def call(i):
     data = hr.HelixData(force + 0.01 * noise[0], moment + 0.01 * noise[1], kappa, tau, force_sigma=0.01, moment_sigma=0.01)
     return hr.fit_stiffness(data, uhat=(1.0, 0.0, 0.0)).rod
 """,
+    "bootstrap": """
+rod = hr.Rod(1.0, 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
+rng = np.random.default_rng(0)
+kappa, tau = rng.uniform(0.3, 2.0, 60), rng.uniform(-1.5, 1.5, 60)
+eq = hr.helix_equilibria(rod, kappa, tau)
+force, moment = np.asarray(eq.force[:, 0]), np.asarray(eq.moment[:, 0])
+noise = np.random.default_rng(0).normal(size=(2, 60))
+data = hr.HelixData(force + 0.01 * noise[0], moment + 0.01 * noise[1], kappa, tau, force_sigma=0.01, moment_sigma=0.01)
+fit = hr.fit_stiffness(data, uhat=(1.0, 0.0, 0.0))
+call = lambda i: hr.bootstrap(data, fit, 100, jax.random.key(i)).samples["K1"]
+""",
+    "fit_stiffness (shape data)": """
+truth = hr.Rod(1.0, 1.4, 0.8, K13=0.15, K23=-0.1, uhat=(0.3, 0.9, 0.35))
+s = jnp.linspace(0.0, 6.0, 25)
+ends = [hr.Loaded((0.02, 0.0, 0.05), (0.0, 0.03, 0.0)), hr.Loaded((-0.03, 0.02, 0.0), (0.02, 0.0, -0.02))]
+data = hr.synthetic_shape_data(truth, 6.0, s, ends, 2e-3, jax.random.key(3))
+init = hr.Rod(1.3, 1.3, 1.0, uhat=truth.uhat)
+call = lambda i: hr.fit_stiffness(data, uhat=truth.uhat, init=eqx.tree_at(lambda r: r.K1, init, 1.3 + 0.01 * i), rtol=1e-8, atol=1e-10).cost
+""",
     "solve_boundary_value": """
 rod = hr.Rod(1.0, 1.5, 0.8)
 call = lambda i: hr.solve_boundary_value(rod, 1.0, end=hr.Loaded(force=(0.0, 0.0, -3.0 - 0.1 * i)))
@@ -108,7 +127,7 @@ call = lambda i: hr.fit_stiffness(data, uhat=rod.uhat, init=rod, fix=fix, fit_of
 
 RUNNER = """
 import json, resource, sys, time
-import jax, jax.numpy as jnp, numpy as np
+import equinox as eqx, jax, jax.numpy as jnp, numpy as np
 jax.config.update("jax_enable_x64", True)
 import helixrod as hr
 if sys.argv[1]:

@@ -469,6 +469,36 @@ def test_a_first_curve_compiles_its_solves_and_their_test_side_by_side_once(comp
     assert int(curve.instability_index[-1]) == int(single.instability_index)
 
 
+@pytest.mark.heavy
+def test_a_first_loss_of_stability_compiles_its_trial_solve_beside_the_finer_tests(compilations, monkeypatch):
+    """The 3-turn spring pulled at zero end moment loses its stability near F = 0.0924
+    (index 0 -> 1; the later points need tests on more pieces).  The bisection's trials are
+    single solves and tests (`solve_with_warm_start`), compiled on threads of their own
+    while the finer tests compile (`_bisection_ahead`), and nothing of the bisection, the
+    finer tests' piece counts or their resolution runs operation by operation (the first
+    curve compiled ~100 one-operation programs: 15.4 -> 11.8 s on 2 cores, with the
+    parallel compilations).  Trial solves from the curve's last stable point on either side
+    of the critical force: stable below it, index 1 above."""
+    from helixrod import _compile
+
+    monkeypatch.setattr(_compile, "cores", lambda: 2)
+    length = 3 * TURN
+    curve = hr.force_extension(SPRING, length, jnp.linspace(0.01, 0.2, 8))
+    compiled = list(compilations)
+    assert curve.critical_kind == "branch point" and np.array_equal(curve.instability_index[:5], [0, 0, 0, 0, 1])
+    critical = float(curve.critical)
+    assert 0.0919 < critical < 0.0929  # (measured 0.092423)
+    threads = {name: thread for thread, name in compiled}
+    assert threads["solve"] == "helixrod-compile-solve", compiled
+    one_operation = {"dynamic_slice", "squeeze", "subtract", "cross", "norm", "concatenate", "true_divide", "multiply", "iota"}
+    assert not one_operation & set(threads), compiled
+    stable_point = jax.tree.map(lambda a: a[3], curve.solutions)
+    for factor, index in ((1 - 1e-5, 0), (1 + 1e-5, 1)):
+        start, end = hr.axial_ends(SPRING, length, force=factor * critical, moment=0.0)
+        single = hr.solve_boundary_value(SPRING, length, start=start, end=end, guess=stable_point)
+        assert bool(single.ok) and int(single.instability_index) == index
+
+
 def test_the_continuation_carry_specs_are_those_of_its_start():
     """`_continuation_carry` (the specs the scan compiles ahead for, without tracing its
     start) against the traced output of `_continuation_start`: from the default guess on

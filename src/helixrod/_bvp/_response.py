@@ -50,10 +50,13 @@ from ._solve import (
     BoundaryValueSolution,
     fit_guess,
     parse_guess,
+    compile_solve_ahead,
     resolved_stability,
     solve,
+    solve_with_warm_start,
     stability_at_points,
     stability_inputs,
+    test_pieces_ahead,
     with_stability,
 )
 
@@ -370,6 +373,9 @@ def _stability_of_points(rod, length, kind, values, N, M0, xs, frames, end_frame
 # their tests compile side by side at a first call (`_compile_side_by_side`).
 _points_stability = jit(_stability_of_points, trace_cache=True)
 _ends_of_points = jit(_point_ends, run_once=True)
+# One point's end (a bisection's trial): evaluated operation by operation it compiled a
+# dozen one-operation programs at a curve's first loss of stability.
+_end_of_point = jit(axial_end_condition, run_once=True)
 
 
 def _resolved(rod, length, kind, values, sols: BoundaryValueSolution, options: BoundaryValueOptions) -> BoundaryValueSolution:
@@ -387,9 +393,10 @@ def _resolved(rod, length, kind, values, sols: BoundaryValueSolution, options: B
     fields = ("instability_index", "stability_margin", "unstable_direction", "rotation")
     tests = {name: np.array(getattr(points, name)) for name in fields}
     pieces = sols.stability_pieces
+    take = lambda tree, i: jax.tree.map(lambda a: a[i], tree)  # noqa: E731
+    test_pieces_ahead(rod, length, [(take(ends, i), take(points, i)) for i in unresolved], options)
     for i in unresolved:
-        take = lambda tree: jax.tree.map(lambda a: a[i], tree)  # noqa: E731,B023
-        tested = jax.device_get(resolved_stability(rod, length, take(ends), take(points), options))
+        tested = jax.device_get(resolved_stability(rod, length, take(ends, i), take(points, i), options))
         for name in fields:
             tests[name][i] = getattr(tested, name)
         pieces = max(pieces, tested.stability_pieces)
@@ -610,6 +617,8 @@ def _response(
             obs, bulk_obs, sols, bulk_ok = _curve(rod, length, kind, values, options, mode, hints, bool(bulk), guess)
             sols = _tested(rod, length, kind, values, sols, options)
     if concrete:
+        if mode == "continuation":
+            _bisection_ahead(rod, length, kind, values, sols, options)
         sols = _resolved(rod, length, kind, values, sols, options)
     obs, sols = _turns_counted(kind, values, obs, sols, concrete)
     curve = ResponseCurve(
@@ -647,6 +656,34 @@ FOLD_MARGIN = 1e-2
 FOLD_CANDIDATES = 3
 
 
+def _stable_then_not(sols: BoundaryValueSolution, values) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """On the host: (the points of a concrete curve whose state is stable, unstable,
+    failed (finite controls), and the stable points followed by one that is not)."""
+    ok = succeeded(sols.result)
+    index = np.asarray(sols.instability_index)
+    stable, unstable = ok & (index == 0), ok & (index > 0)
+    failed = ~ok & np.all(np.isfinite(np.asarray(values)), axis=1)
+    return stable, unstable, failed, np.flatnonzero(stable[:-1] & ~stable[1:])
+
+
+def _bisection_ahead(rod, length, kind, values, sols: BoundaryValueSolution, options: BoundaryValueOptions) -> None:
+    """Where a continuation curve may lose its stability (a stable point followed by one
+    that is not, tested on `options.stability_pieces` pieces, before finer tests resolve
+    the others): start compiling the trial solve of `_first_loss_of_stability` beside the
+    finer tests (`compile_solve_ahead`).  The first curve of a pulled spring (3 turns,
+    forces 0.01-0.5, a branch point near 0.09) compiled that solve after the finer tests,
+    one after the other."""
+    if options.stability_pieces == 0:
+        return
+    host_values = np.asarray(values)
+    candidates = _stable_then_not(jax.device_get(sols), host_values)[3]
+    if candidates.size:
+        i = int(candidates[0])
+        good = jax.tree.map(lambda a: a[i], jax.device_get(sols))
+        end = _end_of_point(rod, length, kind, host_values[i])
+        compile_solve_ahead(rod, length, unloaded_clamp(rod), end, good.warm_start(), options)
+
+
 def _first_loss_of_stability(rod, length, kind, values, swept, sols, options):
     """(critical value of the swept control, kind) of the first loss of stability of a
     continuation curve -- a stable point followed by an unstable one, or by a failed one
@@ -655,14 +692,13 @@ def _first_loss_of_stability(rod, length, kind, values, swept, sols, options):
     branch point if the last unstable trial converged next to the stable side, a fold if
     it did not converge or jumped away (no equilibrium nearby beyond it).  Points whose
     stability is not defined (index -1: an end loaded by a moment) lose none."""
-    ok = succeeded(sols.result)  # on the host: no one-operation programs to compile
-    index = np.asarray(sols.instability_index)
-    stable, unstable = ok & (index == 0), ok & (index > 0)
-    failed = ~ok & np.all(np.isfinite(np.asarray(values)), axis=1)
+    # On the host: no one-operation programs to compile.
+    sols, values = jax.device_get(sols), np.asarray(values)
+    stable, unstable, failed, _ = _stable_then_not(sols, values)
     column = AXIAL_OBSERVABLES.index(swept)
     start = unloaded_clamp(rod)
     take = lambda j: jax.tree.map(lambda a: a[j], sols)  # noqa: E731
-    distance = lambda s, t: float(jnp.linalg.norm(jnp.concatenate([s.force - t.force, s.moment0 - t.moment0])))  # noqa: E731
+    distance = lambda s, t: float(np.linalg.norm(np.concatenate([s.force - t.force, s.moment0 - t.moment0])))  # noqa: E731
     candidates = np.flatnonzero(stable[:-1] & (unstable[1:] | failed[1:]))
     # Every stable -> unstable step, and the first few stable -> failed ones.
     candidates = candidates[~failed[candidates + 1] | (np.cumsum(failed[candidates + 1]) <= FOLD_CANDIDATES)]
@@ -672,15 +708,16 @@ def _first_loss_of_stability(rod, length, kind, values, swept, sols, options):
         first = distance(good, bad)
         for _ in range(CRITICAL_BISECTIONS):
             mid = 0.5 * (a + b)
-            end = axial_end_condition(rod, length, kind, mid)
-            trial = resolved_stability(rod, length, end, solve(rod, length, start, end, good.warm_start(), None, options), options)
-            if bool(trial.ok) and float(trial.stability_margin) > 0:
+            end = _end_of_point(rod, length, kind, mid)
+            solved = solve_with_warm_start(rod, length, start, end, good.warm_start(), None, options)
+            trial = jax.device_get(resolved_stability(rod, length, end, solved, options))
+            if bool(succeeded(trial.result)) and float(trial.stability_margin) > 0:
                 a, good = mid, trial
             else:
                 b, bad = mid, trial
         if failed[i + 1] and not float(good.stability_margin) < FOLD_MARGIN * float(sols.stability_margin[i]):
             continue  # the failure was not the end of the branch
-        close = bool(bad.ok) and distance(good, bad) < 1e-3 * max(first, 1e-300)
+        close = bool(succeeded(bad.result)) and distance(good, bad) < 1e-3 * max(first, 1e-300)
         return float(0.5 * (a[column] + b[column])), "branch point" if close else "fold"
     return np.nan, "none"
 

@@ -248,6 +248,13 @@ def solve_with_warm_start(rod, length, start: Clamped, end: EndCondition, guess,
     return restability(rod, length, end, sol, options) if options.stability_pieces > 0 else sol
 
 
+def compile_solve_ahead(rod, length, start: Clamped, end: EndCondition, guess: WarmStart, options: BoundaryValueOptions) -> None:
+    """Start compiling what `solve_with_warm_start` from the warm start `guess` will run
+    (the solve and its stability test, `_compile_side_by_side`), for a caller that knows
+    it will make such solves and has other programs to compile meanwhile."""
+    _compile_side_by_side(rod, length, start, end, guess, None, options, "helix", False)
+
+
 def _solve_signature(rod, length, start, end, guess, saveat, options, guess_kind, converts: bool):
     """What the programs of `solve_with_warm_start` are compiled for: its options, guess,
     arguments' structure and saved points' shape."""
@@ -588,12 +595,23 @@ FALLBACK_CONTINUATION = (16,)
 MAX_STABILITY_PIECES = 256
 
 
+# A program of its own, compiled to run once: evaluated operation by operation, the
+# stiffness's derivative and eigenvalue compiled ~15 one-operation programs (~0.3 s) at
+# the first curve whose test needed more pieces.
+@jit(run_once=True)
+def _smallest_stiffness(rod):
+    """The smallest eigenvalue of the stiffness at $\hat u$ (`stiffness_range`)."""
+    return stiffness_range(rod)[0]
+
+
 def stability_pieces_for(rod, length, force, moments) -> int:
     """Pieces of the stability test that resolve a wrench (`PIECE_RESOLUTION`): lab `force`
-    `(3,)` and the moments `(..., 3)` along the rod; a power of two (concrete)."""
-    k_min = float(stiffness_range(rod)[0])
-    largest = float(jnp.max(jnp.linalg.norm(jnp.reshape(moments, (-1, 3)), axis=-1)))
-    rate = np.sqrt(float(jnp.linalg.norm(force)) / k_min) + largest / k_min
+    `(3,)` and the moments `(..., 3)` along the rod; a power of two (concrete; on the
+    host)."""
+    k_min = float(_smallest_stiffness(rod))
+    force, moments = np.asarray(force), np.asarray(moments)
+    largest = float(np.max(np.linalg.norm(moments.reshape(-1, 3), axis=-1)))
+    rate = np.sqrt(float(np.linalg.norm(force)) / k_min) + largest / k_min
     return int(2 ** np.ceil(np.log2(max(1.0, 1.25 * rate * float(length) / PIECE_RESOLUTION))))
 
 
@@ -601,8 +619,9 @@ def wrench_pieces(rod, length, force, moment0, node_position, end_position) -> i
     """`stability_pieces_for` the wrench of an equilibrium: lab force `force`, lab moment
     `moment0` at s = 0 and the moments it makes about its shooting nodes and its end (the
     lab moment about a point moves with the point)."""
-    points = jnp.concatenate([node_position, end_position[None]])
-    moments = moment0[None] - jnp.cross(points - node_position[0][None], force[None])
+    force, moment0, node_position, end_position = jax.device_get((force, moment0, node_position, end_position))
+    points = np.concatenate([node_position, np.asarray(end_position)[None]])
+    moments = np.asarray(moment0)[None] - np.cross(points - node_position[0][None], np.asarray(force)[None])
     return stability_pieces_for(rod, length, force, moments)
 
 
@@ -628,6 +647,23 @@ def resolved_test(rod, length, end: EndCondition, inputs: tuple, tested: tuple, 
         pieces = min(max(2 * pieces, needed), MAX_STABILITY_PIECES)
         tested = stability_of_nodes(rod, length, end, *inputs, dataclasses.replace(options, stability_pieces=pieces))
     return tested, pieces
+
+
+def test_pieces_ahead(rod, length, points, options: BoundaryValueOptions) -> None:
+    """Start compiling, side by side (`compile_ahead`), the finer stability tests that
+    `resolved_stability` will run first for each of `points` -- pairs `(end, sol)` of
+    concrete solutions whose test on `options.stability_pieces` pieces did not resolve
+    their wrench: on as many pieces as `resolved_test` takes first (one program for each
+    count).  Tested one after another, the first curve of a pulled spring (3 turns, forces
+    to 0.5) compiled its tests on 32, 64 and 128 pieces one after the other."""
+    counts = {}
+    for end, sol in points:
+        needed = wrench_pieces(rod, length, sol.force, sol.moment0, sol.node_position, sol.end_position)
+        pieces = min(max(2 * options.stability_pieces, needed), MAX_STABILITY_PIECES)
+        counts.setdefault(pieces, (end, sol))
+    if len(counts) > 1:  # (one count: its call compiles it as soon)
+        for pieces, (end, sol) in counts.items():
+            compile_ahead(stability_of_nodes, rod, length, end, *stability_inputs(sol), dataclasses.replace(options, stability_pieces=pieces))
 
 
 def resolved_stability(rod, length, end: EndCondition, sol: BoundaryValueSolution, options: BoundaryValueOptions) -> BoundaryValueSolution:

@@ -600,7 +600,7 @@ MAX_STABILITY_PIECES = 256
 # the first curve whose test needed more pieces.
 @jit(run_once=True)
 def _smallest_stiffness(rod):
-    """The smallest eigenvalue of the stiffness at $\hat u$ (`stiffness_range`)."""
+    """The smallest eigenvalue of the stiffness at $\\hat u$ (`stiffness_range`)."""
     return stiffness_range(rod)[0]
 
 

@@ -13,6 +13,7 @@ from ._finite_data import (
 )
 from ._helix_data import HelixData as HelixData, synthetic_helix_data as synthetic_helix_data
 from ._linear import fit_stiffness_linear as fit_stiffness_linear
+from ._linearity import LinearityCheck as LinearityCheck, linearity_check as linearity_check
 from ._models import (
     AbstractForwardModel as AbstractForwardModel,
     EndResponseModel as EndResponseModel,

@@ -41,12 +41,15 @@ SAVE_FORMAT = "helixrod.StiffnessFit/1"
 
 class FitProblem(eqx.Module):
     """What a fit solved: the forward model (with its data), the parameterisation, the
-    solver and its step budget (what `bootstrap` refits with)."""
+    solver and its step budget (what `bootstrap` refits with), and which program of the
+    model's Jacobian its error analysis ran (`jacobian_and_predictions`'s `once`), which
+    later evaluations at other parameters (`fit_cost_at`) find compiled."""
 
     model: AbstractForwardModel
     parameterisation: Parameterisation
     solver: optx.AbstractLeastSquaresSolver | optx.AbstractMinimiser
     max_steps: int = eqx.field(static=True)
+    jacobian_once: bool = eqx.field(static=True, default=False)
 
 
 class StiffnessFit(eqx.Module):
@@ -61,7 +64,9 @@ class StiffnessFit(eqx.Module):
     reduced $\\chi^2$ = `2 cost / (m - p)` when `absolute_sigma=False`; a parameter with
     a share in a null direction of $J$ has `inf` (the covariance is the pseudo-inverse: it
     has no variance along a null direction, `identifiability.null_directions`, where
-    `stderr` and `propagate` give `inf`).  `cost` = $\\tfrac12\\sum r^2$ as scipy;
+    `stderr` and `propagate` give `inf`); they describe the cost by its quadratic at the
+    minimum: `linearity_check` says where the cost does not bear that out within a few
+    standard errors (then `profile_likelihood`).  `cost` = $\\tfrac12\\sum r^2$ as scipy;
     `residuals` normalised, of the observations only (helix data: the F residuals of the
     points with a measured force, then the M residuals of those with a measured moment,
     then registers if fitted).  `predicted`: the model's predictions of the observed quantities
@@ -451,6 +456,20 @@ def jacobian_and_predictions(q, model: AbstractForwardModel, param: Parameterisa
     compilation, 0.4 -> 0.5 ms a call)."""
     arrays, static = split_arrays((model, param))
     return (_jacobian_and_predictions_once if once else _split_jacobian_and_predictions)(static, q, arrays)
+
+
+def fit_cost_at(fit: StiffnessFit, q) -> float:
+    """The cost $\\tfrac12\\sum r^2$ of `fit`'s problem (its observed residuals) at the free
+    physical values `q` (in the order of `fit.names`), by the program of the model's
+    Jacobian its error analysis compiled; NaN where the model is not defined there."""
+    problem = fit.problem
+    _, (r, _) = jacobian_and_predictions(
+        np.asarray(q, float), problem.model, problem.parameterisation, once=problem.jacobian_once
+    )
+    observed = problem.model.observed_residuals()
+    r = np.asarray(r) if observed is None else np.asarray(r)[observed]
+    cost = 0.5 * float(r @ r)
+    return cost if np.isfinite(cost) else float("nan")
 
 
 def _jacobian_and_predictions_of(static, q, arrays):
@@ -931,5 +950,5 @@ def _best_start(solved, agreement, model, param, solver, method, max_steps, abso
     return assemble(
         rod_from_vector(p_best, checked=True), analysis, dict(zip(param.names, q)), r, predicted, result=result,
         method=method, absolute_sigma=absolute_sigma, n_steps=int(steps[best]), start_costs=cost, n_agree=agree,
-        problem=FitProblem(model, param, solver, max_steps),
+        problem=FitProblem(model, param, solver, max_steps, jacobian_once=once),
     )

@@ -1,0 +1,108 @@
+"""Whether a fit's error bars may be trusted: the cost along each error bar's line.
+
+A fit's standard errors, covariance and the report come from the Jacobian at the minimum:
+they describe the cost as the quadratic $\\tfrac12\\Delta\\chi^2 = \\tfrac12\\,\\delta^T J^T J
+\\delta$.  Along the line $\\delta_i(t) = t\\,\\Sigma e_i/\\sigma_i$ -- parameter $i$ moved by $t$
+standard errors and every other parameter by what the covariance says it follows with
+(the linear approximation of the profile of $i$) -- that quadratic is exactly
+$\\Delta\\chi^2 = t^2$.  `linearity_check` evaluates the fit's own cost there, at $t = \\pm k$:
+the model's residuals at $2p$ points, no refits.  Where it is far from $k^2$ the likelihood
+is not the ellipsoid the error bars describe within their own range (a curved valley, a
+bound, a kink of the model), and the profile likelihood (`profile_likelihood`) or the
+bootstrap gives the honest interval.  The check is necessary, not sufficient: a valley
+that curves away from the line (the profile lower than the line) raises $\\Delta\\chi^2$ on
+it above $k^2$, which is flagged; one whose cost happens to follow $t^2$ on both sides is not
+(Bates & Watts, *Nonlinear Regression Analysis and Its Applications*, Wiley 1988, ch. 7,
+measure the same thing by curvatures).
+
+Measured (2026-12-07) on force-extension data of one DNA molecule (30 points at zero
+torque, K2, K3, K23 and the persistence length free), whose fit reported $K_2 = 578 \\pm 9$
+against a true 1327: $\\Delta\\chi^2 = 1378$ at $+2\\sigma$ of $K_2$ (flagged); on the
+bundled tweezer example's global fit $K_2, K_3, K_{23}$ and the offsets lie within
+3.2-4.7 at $\\pm 2\\sigma$, while the persistence length (24.2 at $-2\\sigma$) and the
+plectoneme's twist persistence (21.9 at $+2\\sigma$) are flagged: one hat-curve point lies
+within 0.1 standard error of its buckling point, where the slope of extension against
+turns, and with it that point's errors-in-variables sigma, changes by a factor of 3.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import numpy as np
+from jaxtyping import Bool, Float
+
+from ._pipeline import StiffnessFit, fit_cost_at
+
+#: A parameter's line is flagged where its $\\Delta\\chi^2$ at $\\pm k$ standard errors is
+#: outside $[k^2/F, F k^2]$ (F = `LINEARITY_FACTOR`), or not finite (the line leaves the
+#: model's domain).
+LINEARITY_FACTOR = 2.0
+
+
+class LinearityCheck(eqx.Module):
+    """The result of `linearity_check`: `names` of the free parameters; `delta_chi2` `(p, 2)`
+    the fit's $\\Delta\\chi^2$ at $-k$ and $+k$ standard errors along each parameter's
+    line (NaN for a parameter whose standard error is not finite: it is undetermined, the
+    report says so); `expected` $= k^2$ (what the error bars predict); `nonlinear` `(p,)`
+    where it is outside $[k^2/2, 2k^2]$ or not finite; `flagged` the names of those."""
+
+    names: tuple[str, ...] = eqx.field(static=True)
+    delta_chi2: Float[np.ndarray, "p 2"]
+    expected: float
+    nonlinear: Bool[np.ndarray, " p"]
+
+    @property
+    def flagged(self) -> tuple[str, ...]:
+        """The parameters whose error bars the cost does not bear out."""
+        return tuple(n for n, bad in zip(self.names, self.nonlinear) if bad)
+
+    def summary(self) -> str:
+        """A table of the check, one parameter per line."""
+        lines = [f"Delta chi2 at -{np.sqrt(self.expected):g} and +{np.sqrt(self.expected):g} standard errors "
+                 f"(the error bars say {self.expected:g}):"]
+        for name, (lo, hi), bad in zip(self.names, self.delta_chi2, self.nonlinear):
+            lines.append(f"  {name:30s} {lo:10.4g} {hi:10.4g}" + ("   not quadratic: use profile_likelihood" if bad else ""))
+        return "\n".join(lines)
+
+
+def linearity_check(fit: StiffnessFit, k: float = 2.0) -> LinearityCheck:
+    """Whether `fit`'s error bars describe its cost within $\\pm k$ standard errors (module
+    docstring): the fit's $\\Delta\\chi^2$ at $\\pm k$ along each free parameter's line
+    $\\Sigma e_i/\\sigma_i$, against the $k^2$ the covariance predicts; $2p$ evaluations of the
+    model's residuals, no refits.  With `absolute_sigma=False` the covariance's scale (the
+    reduced $\\chi^2$) is taken out first, so the expectation is $k^2$ either way.
+
+    **Example**
+
+    ```python
+    fit = helixrod.fit_stiffness(data, uhat=rod.uhat)
+    check = helixrod.linearity_check(fit)
+    check.flagged          # () where the error bars hold; else profile those parameters
+    print(check.summary())
+    ```
+    """
+    if fit.problem is None:
+        raise ValueError(
+            "linearity_check needs the problem of a fit from fit_stiffness in this session "
+            "(a fit_stiffness_linear result or a StiffnessFit.load-ed one has none)"
+        )
+    k = float(k)
+    if not (np.isfinite(k) and k > 0):
+        raise ValueError(f"linearity_check: k must be finite and > 0, got {k}")
+    names = fit.names
+    q = np.array([float(fit.params[n]) for n in names])
+    covariance = np.asarray(fit.covariance, float)
+    if not fit.absolute_sigma and np.isfinite(fit.chi2_reduced) and fit.chi2_reduced > 0:
+        covariance = covariance / fit.chi2_reduced
+    stderr = np.sqrt(np.diag(covariance))
+    determined = np.array([np.isfinite(float(fit.stderr[n])) and s > 0 for n, s in zip(names, stderr)])
+    best = fit_cost_at(fit, q)
+    delta = np.full((len(names), 2), np.nan)
+    for i in np.flatnonzero(determined):
+        line = covariance[:, i] / stderr[i]
+        for j, side in enumerate((-1.0, 1.0)):
+            delta[i, j] = 2.0 * (fit_cost_at(fit, q + side * k * line) - best)
+    expected = k * k
+    inside = (delta >= expected / LINEARITY_FACTOR) & (delta <= LINEARITY_FACTOR * expected)
+    nonlinear = determined & ~np.all(inside, axis=1)
+    return LinearityCheck(names=names, delta_chi2=delta, expected=expected, nonlinear=nonlinear)

@@ -91,6 +91,13 @@ def test_bad_input():
         helixrod.stability_atlas(ROD, 1.0, 0.5, 5.0, pieces=10**6)
     with pytest.raises(ValueError, match="kappa is empty"):
         helixrod.stability_atlas(ROD, jnp.zeros(0), jnp.zeros(0), 5.0)
+    # Traced inputs: a clear error, not one from deep inside (a ConcretizationTypeError under
+    # vmap over lengths; critical_length=False answered a negative length as a positive one).
+    for critical in (True, False):
+        with pytest.raises(ValueError, match="needs concrete inputs"):
+            jax.vmap(lambda L: helixrod.stability_atlas(ROD, 1.0, 0.5, L, critical_length=critical).stable)(jnp.array([5.0, -5.0]))
+    with pytest.raises(ValueError, match="needs concrete inputs"):
+        jax.jit(lambda k: helixrod.stability_atlas(ROD, k, 0.5, 5.0).stable)(jnp.ones(2))
 
 
 @pytest.mark.heavy

@@ -62,6 +62,13 @@ def test_bad_pairs_raise():
         hr.bulk_helix(SPRING, 0.0, force=0.0, moment=0.0)
     with pytest.raises(ValueError, match="bulk_helix: moment must be finite"):
         hr.bulk_helix(SPRING, 10.0, force=0.0, moment=np.nan)
+    # A guess is checked as the controls are (a NaN one was a SolverError from the solve).
+    with pytest.raises(ValueError, match="bulk_helix: guess u must be finite"):
+        hr.bulk_helix(SPRING, 10.0, force=0.0, moment=0.0, guess=((np.nan, 1.0, 0.3), 0.0, 0.0))
+    with pytest.raises(ValueError, match="bulk_helix: guess mu2 must be finite"):
+        hr.bulk_helix(SPRING, 10.0, force=0.0, moment=0.0, guess=((0.0, 1.0, 0.3), 0.0, np.inf))
+    with pytest.raises(ValueError, match=r"bulk_helix: guess must be \(u, mu1, mu2\)"):
+        hr.bulk_helix(SPRING, 10.0, force=0.0, moment=0.0, guess=(0.0, 1.0))
 
 
 def test_throw_false_reports_a_failure_in_ok():

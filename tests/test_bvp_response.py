@@ -212,6 +212,12 @@ def test_response_curve_flags_a_bad_point_without_spoiling_the_others():
     keep = np.array([0, 2, 3])
     assert bool(jnp.all(bad.ok[keep]))
     np.testing.assert_allclose(bad.extension[keep], clean.extension[keep], atol=1e-9)
+    # A bad first point: the continuation starts at the first good one (from the bad one,
+    # every later point's substeps started at NaN and all were flagged invalid_input).
+    first = tweezer_curve(length, FORCES.at[0].set(jnp.nan))
+    assert np.asarray(first.ok).tolist() == [False, True, True, True]
+    assert np.asarray(first.solutions.valid_input).tolist() == [False, True, True, True]
+    np.testing.assert_allclose(first.extension[1:], clean.extension[1:], atol=1e-9)
 
 
 @pytest.mark.heavy  # compiles the curve vmapped over lengths

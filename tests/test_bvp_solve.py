@@ -508,6 +508,32 @@ def test_traced_save_points_that_are_not_arc_lengths_of_the_rod_flag_their_point
     np.testing.assert_allclose(x[0], alone.x, atol=1e-12)
 
 
+@pytest.mark.heavy  # compiles the vmapped solve
+def test_traced_frames_that_are_not_rotations_flag_their_point():
+    """A traced start or end frame that is not a rotation (scaled, reflected) is flagged
+    `invalid_input` with NaN fields, as `check_rotation` refuses a concrete one (it was
+    solved, ok, with a wrong answer: a scaled start frame gave 4x the good point's force);
+    the good point is as solved alone."""
+    rod, length = SPRING, TURN
+    h0, theta0 = (float(a) for a in hr.unloaded_observables(rod, length))
+    start, end = hr.axial_ends(rod, length, extension=1.05 * h0, rotation=theta0 + 0.1)
+    reflect = jnp.diag(jnp.array([1.0, 1.0, -1.0]))
+
+    def one(start_frame, end_frame):
+        sol = hr.solve_boundary_value(rod, length, start=hr.Clamped(start.position, start_frame),
+                                      end=hr.Clamped(end.position, end_frame), throw=False)
+        return sol.force, sol.ok, sol.result == hr.RESULTS.invalid_input
+
+    starts = jnp.stack([start.frame, 0.5 * start.frame, start.frame @ reflect, start.frame])
+    ends = jnp.stack([end.frame, end.frame, end.frame, end.frame @ reflect])
+    force, ok, invalid = jax.vmap(one)(starts, ends)
+    assert ok.tolist() == [True, False, False, False] and invalid.tolist() == [False, True, True, True]
+    assert np.all(np.isnan(np.asarray(force[1:])))
+    np.testing.assert_allclose(force[0], hr.solve_boundary_value(rod, length, start=start, end=end).force, atol=1e-10)
+    with pytest.raises(ValueError, match="rotation"):
+        hr.Clamped(start.position, 0.5 * start.frame)
+
+
 def test_failed_solve_raises_with_throw_and_reports_without():
     """A clamped-clamped spring stretched far beyond its length has no solution."""
     length = 1.0 * TURN
@@ -535,8 +561,11 @@ def test_failure_is_a_solver_error_naming_the_result():
 # -- slow -----------------------------------------------------------------------------------
 
 
-@pytest.mark.slow
+@pytest.mark.heavy  # (~35 s; it was slow-only, and reverse mode broke unseen for a day)
 def test_reverse_mode_with_direct_adjoint_matches_forward_mode():
+    """`jax.jacrev` with `DirectAdjoint` equals `jax.jacfwd`: the implicit tangent of the
+    shooting solve is linear in its right-hand side (`solve_small_linear`), so reverse mode
+    can transpose it (with `solve_small`: "nonlinear div can't be transposed")."""
     length = 1.5 * TURN
     h0, theta0 = (float(a) for a in hr.unloaded_observables(SPRING, length))
 

@@ -118,6 +118,13 @@ def test_non_physical_parameters_raise_or_give_nan():
         (lambda: dna.wlc_extension(1.0, 0.0), "wlc_extension: persistence_length"),
         (lambda: dna.wlc_free_energy(1.0, np.inf), "wlc_free_energy: persistence_length"),
         (lambda: dna.moroz_nelson_twist_modulus(400.0, 1.0, -1.0), "moroz_nelson_twist_modulus: persistence_length"),
+        (lambda: dna.moroz_nelson_twist_modulus(-400.0, 1.0), "moroz_nelson_twist_modulus: twist_modulus and force"),
+        (lambda: dna.moroz_nelson_twist_modulus(400.0, -1.0), "moroz_nelson_twist_modulus: twist_modulus and force"),
+        (lambda: dna.observables_from_helix(0.0, 0.0, 10.0), "observables_from_helix: need a helix"),
+        (lambda: dna.observables_from_helix(kappa0, tau0, -10.0), "observables_from_helix: need a helix"),
+        (lambda: dna.tweezer_from_helix(0.0, 0.0, 100), "observables_from_helix: need a helix"),
+        (lambda: dna.changes_from_helix(kappa0, tau0, -5), "changes_from_helix: n_bp and length_per_bp"),
+        (lambda: dna.helix_from_changes(0.0, 0.0, np.nan), "helix_from_changes: n_bp and length_per_bp"),
     )
     for call, message in concrete:
         with pytest.raises(ValueError, match=message):
@@ -131,3 +138,7 @@ def test_non_physical_parameters_raise_or_give_nan():
     assert np.isnan(h[1])
     rise = jax.vmap(lambda k: dna.bdna_from_helix(k, 0.0 * k, ell)[0])(jnp.array([0.0, kappa0]))
     assert np.isnan(rise[0]) and np.isfinite(rise[1])
+    change, _ = jax.vmap(lambda n: dna.changes_from_helix(1.01 * kappa0, tau0, n_bp=n))(jnp.array([100.0, -100.0]))
+    assert change[0] == dna.changes_from_helix(1.01 * kappa0, tau0, n_bp=100.0)[0] and np.isnan(change[1])
+    modulus = jax.vmap(lambda C: dna.moroz_nelson_twist_modulus(C, 1.0))(jnp.array([400.0, -400.0]))
+    assert modulus[0] == dna.moroz_nelson_twist_modulus(400.0, 1.0) and np.isnan(modulus[1])

@@ -61,7 +61,15 @@ def test_wlc_against_the_exact_chain():
     slope = jax.grad(lambda F: tw.wlc_extension(F, A))(2.0)
     central = (tw.wlc_extension(2.0 + 1e-5, A) - tw.wlc_extension(2.0 - 1e-5, A)) / 2e-5
     np.testing.assert_allclose(slope, central, rtol=1e-7)
-    assert np.isnan(tw.wlc_extension(-1.0)) and np.isnan(tw.wlc_force(1.0))
+    # Outside their domain: concrete values raise, traced ones are NaN beside good ones.
+    with pytest.raises(ValueError, match="wlc_extension: force must be finite and >= 0"):
+        tw.wlc_extension(-1.0)
+    with pytest.raises(ValueError, match=r"wlc_force: relative_extension must be in \[0, 1\)"):
+        tw.wlc_force(1.2)
+    z = jax.vmap(tw.wlc_extension)(jnp.array([2.0, -1.0]))
+    assert z[0] == tw.wlc_extension(2.0) and np.isnan(z[1])
+    f = jax.vmap(tw.wlc_force)(jnp.array([0.5, 1.0]))
+    assert f[0] == tw.wlc_force(0.5) and np.isnan(f[1])
 
 
 def test_a_stiff_rod_is_the_inextensible_chain():

@@ -119,8 +119,14 @@ def bdna_from_helix(kappa: ArrayLike, tau: ArrayLike, length_per_bp: ArrayLike) 
 # -- observables <-> helix ---------------------------------------------------------------
 def observables_from_helix(kappa: ArrayLike, tau: ArrayLike, length: ArrayLike) -> tuple[Array, Array]:
     """Extension $h = L\\tau/|u|$ and end rotation $\\Theta = L|u|$ (radians) of a helix of
-    contour length $L$ = `length` (`height_and_turns`)."""
-    height, turns = height_and_turns(kappa, tau, length)
+    contour length $L$ = `length` (`height_and_turns`).  Needs a helix ($\\kappa, \\tau$ finite,
+    not both 0: a straight untwisted filament has no axis) and $L$ finite and > 0: concrete
+    inputs that break this raise `ValueError`, traced ones give NaN."""
+    dtype = jnp.result_type(float)
+    kappa, tau, length = (jnp.asarray(x, dtype) for x in (kappa, tau, length))
+    ok = _finite_positive(jnp.hypot(kappa, tau)) & _finite_positive(length)
+    require_valid(ok, "observables_from_helix: need a helix (kappa, tau finite, not both 0) and length > 0", kappa, tau, length)
+    height, turns = height_and_turns(jnp.where(ok, kappa, jnp.nan), jnp.where(ok, tau, jnp.nan), length)
     return height, 2 * jnp.pi * turns
 
 
@@ -209,7 +215,7 @@ def changes_from_helix(
     assumes a straight axis (writhe 0).  Positive $\\Delta Lk$ is overwinding.
     """
     kappa0, tau0, length_per_bp = _reference(reference)
-    length = jnp.asarray(n_bp) * length_per_bp
+    length = _contour(n_bp, length_per_bp, "changes_from_helix")
     h, theta = observables_from_helix(kappa, tau, length)
     h0, theta0 = observables_from_helix(kappa0, tau0, length)
     return h - h0, (theta - theta0) / (2 * jnp.pi)
@@ -225,7 +231,7 @@ def helix_from_changes(
     """Inverse of `changes_from_helix`: $(\\kappa, \\tau)$ from the extension change (nm) and
     linking-number change (turns) of `n_bp` base pairs relative to the `reference` helix."""
     kappa0, tau0, length_per_bp = _reference(reference)
-    length = jnp.asarray(n_bp) * length_per_bp
+    length = _contour(n_bp, length_per_bp, "helix_from_changes")
     h0, theta0 = observables_from_helix(kappa0, tau0, length)
     extension = h0 + jnp.asarray(extension_change)
     rotation = theta0 + 2 * jnp.pi * jnp.asarray(linking_number_change)

@@ -145,10 +145,11 @@ def wlc_force(
 ) -> Array:
     """Force (pN) of an inextensible worm-like chain at relative extension $z$ = extension /
     contour length, bending persistence `persistence_length` (nm): Bouchiat et al. (1999).
-    $0 \\le z < 1$; other values give NaN (a persistence that is not finite and > 0 raises
-    `ValueError`, or gives NaN where traced)."""
+    $0 \\le z < 1$: a concrete $z$ outside raises `ValueError`, a traced one gives NaN (as a
+    persistence that is not finite and > 0)."""
     z = jnp.asarray(relative_extension, float_dtype())
     ok = (z >= 0) & (z < 1)
+    require_valid(ok, "wlc_force: relative_extension must be in [0, 1)", z)
     safe = jnp.where(ok, z, 0.5)
     force = thermal_energy(temperature) / _persistence(persistence_length, "wlc_force") * _bouchiat_force(safe)
     return jnp.where(ok, force, jnp.nan)
@@ -157,8 +158,10 @@ def wlc_force(
 def wlc_extension(force: ArrayLike, persistence_length: ArrayLike = 50.0, temperature: ArrayLike = ROOM_TEMPERATURE) -> Array:
     """Relative extension $z$ (extension / contour length) of an inextensible worm-like chain
     at `force` (pN), the inverse of `wlc_force`; differentiable (implicit function).
-    $F \\ge 0$; a negative or non-finite force gives NaN (a persistence as `wlc_force`)."""
+    $F \\ge 0$: a concrete negative or non-finite force raises `ValueError`, a traced one
+    gives NaN (a persistence as `wlc_force`)."""
     force = jnp.asarray(force, float_dtype())
+    require_valid(jnp.isfinite(force) & (force >= 0), "wlc_extension: force must be finite and >= 0 pN", force)
     f = _dimensionless_force(force, _persistence(persistence_length, "wlc_extension"), temperature)
     ok = jnp.isfinite(f) & (f >= 0)
     return jnp.where(ok, _wlc_relative_extension(jnp.where(ok, f, 1.0)), jnp.nan)
@@ -182,12 +185,16 @@ def moroz_nelson_twist_modulus(
     """The effective twist modulus (pN nm^2) at constant force of a molecule with intrinsic
     twist modulus $C$ (pN nm^2) and bending persistence $A$ (nm) at `force` (pN):
     $C(1 - \\frac{C}{4Ak_BT}\\sqrt{k_BT/(AF)})$ (Moroz and Nelson 1997, valid while the
-    correction is small; NaN where it reaches 1)."""
+    correction is small; NaN where it reaches 1).  $C$ and $F$ finite and > 0: concrete
+    values that are not raise `ValueError`, traced ones give NaN."""
     kT = thermal_energy(temperature)
     C = jnp.asarray(twist_modulus, float_dtype())
+    force = jnp.asarray(force, float_dtype())
+    ok = jnp.isfinite(C) & (C > 0) & jnp.isfinite(force) & (force > 0)
+    require_valid(ok, "moroz_nelson_twist_modulus: twist_modulus and force must be finite and > 0", C, force)
     A = _persistence(persistence_length, "moroz_nelson_twist_modulus")
-    c = C / (4 * A * kT) * jnp.sqrt(kT / (A * jnp.asarray(force)))
-    return jnp.where(c < 1, C * (1 - c), jnp.nan)
+    c = C / (4 * A * kT) * jnp.sqrt(kT / (A * jnp.where(ok, force, 1.0)))
+    return jnp.where(ok & (c < 1), C * (1 - c), jnp.nan)
 
 
 # -- the response --------------------------------------------------------------------------

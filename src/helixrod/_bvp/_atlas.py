@@ -63,7 +63,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._compile import committed_placement, compile_ahead, filter_jit, jit, leaf_shapes, once_per_signature
 from .._equilibria import helix_equilibria
-from .._misc import check_integer, finite_scalar, float_dtype, solve_small
+from .._misc import check_integer, finite_scalar, float_dtype, is_concrete, solve_small
 from .._lie import hat, se3_exp, so3_exp
 from .._progress import ProgressArgument, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import check_one_rod, check_quadratic_rod
@@ -545,7 +545,9 @@ def stability_atlas(
       compiled program, the last batch padded), with the same results bit for bit; else
       in one call.
 
-    Returns a `StabilityAtlas`.  Compiled once per grid shape and settings.
+    Returns a `StabilityAtlas`.  Compiled once per grid shape and settings.  Its inputs
+    must be concrete (it tests the grid in host-side chunks, as `sweep`): under `jax.jit`,
+    `vmap` or `grad` it raises `ValueError`; call it once per rod or length.
 
     **Example**
 
@@ -559,6 +561,11 @@ def stability_atlas(
     owner = "stability_atlas"
     check_quadratic_rod(rod, owner)  # its helices are `helix_equilibria`'s
     check_one_rod(rod, owner)
+    if not is_concrete(rod, kappa, tau, length, max_length):
+        raise ValueError(
+            f"{owner} needs concrete inputs, not traced ones (under jax.jit, vmap or grad): it tests its grid in "
+            "host-side chunks; call it once per rod or length"
+        )
     dtype = float_dtype()
     kappa, tau = (jnp.asarray(a, dtype) for a in (kappa, tau))
     for name, a in (("kappa", kappa), ("tau", tau)):

@@ -24,7 +24,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
-from .._misc import attainable, finite_scalar, float_dtype, is_concrete, newton_iterations, no_gradient, solve_small, solve_small_linear
+from .._misc import attainable, finite_array, finite_scalar, float_dtype, is_concrete, newton_iterations, no_gradient, solve_small, solve_small_linear
 from .._rod import check_one_rod
 from .._status import RESULTS, has_code, promote, raise_if_failed
 from ._ends import AXIAL_OBSERVABLES, axial_controls
@@ -332,6 +332,13 @@ def bulk_helix(
     check_one_rod(rod, "bulk_helix")
     length = finite_scalar(length, "length", "bulk_helix", positive=True)
     values = jnp.stack([finite_scalar(given.get(n, 0.0), n, "bulk_helix") for n in AXIAL_OBSERVABLES])
+    if guess is not None:
+        try:
+            u, mu1, mu2 = guess
+        except (TypeError, ValueError):
+            raise ValueError("bulk_helix: guess must be (u, mu1, mu2)") from None
+        guess = (finite_array(u, "guess u", "bulk_helix", (3,)), finite_scalar(mu1, "guess mu1", "bulk_helix"),
+                 finite_scalar(mu2, "guess mu2", "bulk_helix"))
     index = jnp.array([AXIAL_OBSERVABLES.index(n) for n in name.split("-")])
     bulk = bulk_helix_at(rod, length, index, values, guess, max_steps=max_steps)
     if not throw:

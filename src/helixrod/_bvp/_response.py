@@ -216,13 +216,15 @@ def _independent_points(rod, length, kind, values, hints, options: BoundaryValue
 
 
 def _continuation_start(rod, length, kind, values, options: BoundaryValueOptions, guess):
-    """The carry of continuation mode before the first point `values[0]` (4,): its warm
+    """The carry of continuation mode before the first point (4,): its warm
     start (from `guess` where that solve succeeds, else the default, made from the first
     point's bulk helix: with the whole turns of a rotation held there, which the end frame
     alone does not count), the unloaded bulk guess, the rotation near which its whole
-    turns are counted, the controls the warm start was solved at (`values[0]`), and
-    whether the last point converged (yes)."""
-    first = values[0]
+    turns are counted, the controls the warm start was solved at (the first point), and
+    whether the last point converged (yes).  The first point with finite controls stands
+    in for a first point without (traced: a NaN first control made every later point start
+    its substeps from NaN and fail, each flagged `invalid_input`)."""
+    first = values[jnp.argmax(jnp.all(jnp.isfinite(values), axis=1))]
     start, theta0, unloaded = _curve_setup(rod, length)
     first_end = axial_end_condition(rod, length, kind, first)
     bulk0 = bulk_helix_at(rod, length, jnp.asarray(CONTROL_INDEX)[kind], first, unloaded)

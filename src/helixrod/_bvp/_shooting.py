@@ -29,7 +29,7 @@ from jaxtyping import Array, Float
 
 from .._geometry import unloaded_observables, unloaded_state
 from .._lie import RodState, gibbs, rotation_z, so3_exp, tangent, twist_angle
-from .._misc import differentiated_part, no_gradient, solve_small
+from .._misc import differentiated_part, no_gradient, solve_small_linear
 from ._bulk import bulk_helix_at
 from ._ends import CONTROL_INDEX, LOADED, TWEEZER, Clamped, EndCondition
 from ._options import BoundaryValueOptions
@@ -388,7 +388,9 @@ def _implicit_tangents(y, pieces, flows, args, saveat, t_args, options: Boundary
     jac, rest_jac = _jacobian_columns(lambda z: residual(z, diff), y)
     good = jnp.all(jnp.isfinite(jac))
     safe = jnp.where(good, jac, jnp.eye(y.size, dtype=y.dtype))
-    t_y = jnp.where(good, -solve_small(safe, b), jnp.nan)
+    # Linear in the tangent `b` (`solve_small_linear`): reverse mode transposes this rule, and
+    # `solve_small`'s joint elimination of [A | b] is not linear in b.
+    t_y = jnp.where(good, -solve_small_linear(safe, b), jnp.nan)
     t_pieces, t_observed = jax.tree.map(lambda a, t: t + a @ t_y, rest_jac, t_rest)
     return (y, pieces, observed), (t_y, t_pieces, t_observed)
 

@@ -35,6 +35,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._compile import compile_ahead, jit, once_per_signature
 from .._geometry import unloaded_observables
 from .._kirchhoff import wrench_growth_rate
+from .._lie import is_rotation
 from .._misc import finite_scalar, float_dtype, increases_within, increasing_within, is_concrete, no_gradient, replaced, tree_where
 from .._rod import check_one_rod
 from .._status import RESULTS, SolverError, has_code, promote, raise_if_failed, succeeded
@@ -296,6 +297,9 @@ def solve(
     options = options.for_dtype(dtype)
     valid = jnp.isfinite(length) & (length > 0) & end.finite()
     valid = valid & jnp.all(jnp.isfinite(start.position)) & jnp.all(jnp.isfinite(start.frame))
+    # Frames checked by `check_rotation` where concrete; traced ones here (a reflected or
+    # scaled frame was solved, ok, with a wrong answer).
+    valid = valid & is_rotation(start.frame) & is_rotation(end.frame)
     if isinstance(guess, tuple):
         valid = valid & jnp.all(jnp.isfinite(guess[0])) & jnp.all(jnp.isfinite(guess[1]))
     elif isinstance(guess, WarmStart):

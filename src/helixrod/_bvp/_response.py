@@ -553,7 +553,10 @@ def axial_response(
     point's start in continuation mode (the default guess where that fails), every point's
     in independent mode.  `options` and the keywords after it: as `solve_boundary_value`.
     `throw`: raise `SolverError` if any point fails (default `False`: failed points have
-    `ok = False` and NaN observables).  jit/vmap safe.
+    `ok = False` and NaN observables).  jit/vmap safe.  Derivatives: forward mode
+    (`jax.jacfwd`, `jvp`) in either mode; reverse mode (`jax.grad`, `jacrev`, with
+    `adjoint=diffrax.DirectAdjoint()`) in `mode="independent"` only -- continuation's
+    substeps are a loop of dynamic length, which JAX cannot differentiate in reverse.
 
     `progress`: `None` (default) shows a rich progress bar of the points solved when stdout
     is a terminal (and the inputs are concrete, not traced), `True`/`False` force it on or
@@ -764,7 +767,8 @@ def force_extension(
     previous -- sort `forces` from small to large) or `"independent"` (vmapped solves from
     the bulk guess).  `guess` as `axial_response`.  `options` and the keywords after it: as
     `solve_boundary_value`; `throw` and `progress` (a progress bar or callback over the
-    points) as `axial_response`.  jit/vmap safe (e.g. `jax.vmap`
+    points) as `axial_response`, and its derivatives (reverse mode in independent mode
+    only).  jit/vmap safe (e.g. `jax.vmap`
     over lengths); unconverged points have `ok = False` and NaN observables.
 
     **Example**

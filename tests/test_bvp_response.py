@@ -494,10 +494,10 @@ def test_a_first_loss_of_stability_compiles_its_trial_solve_beside_the_finer_tes
     assert curve.critical_kind == "branch point" and np.array_equal(curve.instability_index[:5], [0, 0, 0, 0, 1])
     critical = float(curve.critical)
     assert 0.0919 < critical < 0.0929  # (measured 0.092423)
-    threads = {name: thread for thread, name in compiled}
-    assert threads["solve"] == "helixrod-compile-solve", compiled
+    # (Where an earlier test in this process compiled the same solve, nothing compiles it.)
+    assert ("MainThread", "solve") not in compiled, compiled
     one_operation = {"dynamic_slice", "squeeze", "subtract", "cross", "norm", "concatenate", "true_divide", "multiply", "iota"}
-    assert not one_operation & set(threads), compiled
+    assert not one_operation & {name for _, name in compiled}, compiled
     stable_point = jax.tree.map(lambda a: a[3], curve.solutions)
     for factor, index in ((1 - 1e-5, 0), (1 + 1e-5, 1)):
         start, end = hr.axial_ends(SPRING, length, force=factor * critical, moment=0.0)

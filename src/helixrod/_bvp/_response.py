@@ -661,30 +661,31 @@ FOLD_MARGIN = 1e-2
 FOLD_CANDIDATES = 3
 
 
-def _stable_then_not(sols: BoundaryValueSolution, values) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """On the host: (the points of a concrete curve whose state is stable, unstable,
-    failed (finite controls), and the stable points followed by one that is not)."""
+def _losses_of_stability(sols: BoundaryValueSolution, values) -> tuple[np.ndarray, np.ndarray]:
+    """On the host: (the points of a concrete curve that failed with finite controls, the
+    stable points followed by an unstable or a failed one)."""
     ok = succeeded(sols.result)
     index = np.asarray(sols.instability_index)
     stable, unstable = ok & (index == 0), ok & (index > 0)
     failed = ~ok & np.all(np.isfinite(np.asarray(values)), axis=1)
-    return stable, unstable, failed, np.flatnonzero(stable[:-1] & ~stable[1:])
+    return failed, np.flatnonzero(stable[:-1] & (unstable[1:] | failed[1:]))
 
 
 def _bisection_ahead(rod, length, kind, values, sols: BoundaryValueSolution, options: BoundaryValueOptions) -> None:
-    """Where a continuation curve may lose its stability (a stable point followed by one
-    that is not, tested on `options.stability_pieces` pieces, before finer tests resolve
-    the others): start compiling the trial solve of `_first_loss_of_stability` beside the
-    finer tests (`compile_solve_ahead`).  The first curve of a pulled spring (3 turns,
+    """Where a continuation curve loses its stability (a stable point followed by an
+    unstable or a failed one, tested on `options.stability_pieces` pieces, before finer
+    tests resolve the points they did not: those may hide more, whose bisection compiles
+    its solve then): start compiling the trial solve of `_first_loss_of_stability` beside
+    the finer tests (`compile_solve_ahead`).  The first curve of a pulled spring (3 turns,
     forces 0.01-0.5, a branch point near 0.09) compiled that solve after the finer tests,
     one after the other."""
     if options.stability_pieces == 0:
         return
-    host_values = np.asarray(values)
-    candidates = _stable_then_not(jax.device_get(sols), host_values)[3]
+    host, host_values = jax.device_get(sols), np.asarray(values)
+    candidates = _losses_of_stability(host, host_values)[1]
     if candidates.size:
         i = int(candidates[0])
-        good = jax.tree.map(lambda a: a[i], jax.device_get(sols))
+        good = jax.tree.map(lambda a: a[i], host)
         end = _end_of_point(rod, length, kind, host_values[i])
         compile_solve_ahead(rod, length, unloaded_clamp(rod), end, good.warm_start(), options)
 
@@ -699,12 +700,11 @@ def _first_loss_of_stability(rod, length, kind, values, swept, sols, options):
     stability is not defined (index -1: an end loaded by a moment) lose none."""
     # On the host: no one-operation programs to compile.
     sols, values = jax.device_get(sols), np.asarray(values)
-    stable, unstable, failed, _ = _stable_then_not(sols, values)
+    failed, candidates = _losses_of_stability(sols, values)
     column = AXIAL_OBSERVABLES.index(swept)
     start = unloaded_clamp(rod)
     take = lambda j: jax.tree.map(lambda a: a[j], sols)  # noqa: E731
     distance = lambda s, t: float(np.linalg.norm(np.concatenate([s.force - t.force, s.moment0 - t.moment0])))  # noqa: E731
-    candidates = np.flatnonzero(stable[:-1] & (unstable[1:] | failed[1:]))
     # Every stable -> unstable step, and the first few stable -> failed ones.
     candidates = candidates[~failed[candidates + 1] | (np.cumsum(failed[candidates + 1]) <= FOLD_CANDIDATES)]
     for i in candidates:

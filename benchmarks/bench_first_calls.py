@@ -43,6 +43,19 @@ from pathlib import Path
 
 from _machine import cpu_model
 
+#: The helices of the fit cases: 60 of a coupled rod, and `helix_data(seed)` their forces and
+#: moments with 1 % noise.
+HELIX_DATA = """
+rod = hr.Rod(1.0, 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
+rng = np.random.default_rng(0)
+kappa, tau = rng.uniform(0.3, 2.0, 60), rng.uniform(-1.5, 1.5, 60)
+eq = hr.helix_equilibria(rod, kappa, tau)
+force, moment = np.asarray(eq.force[:, 0]), np.asarray(eq.moment[:, 0])
+def helix_data(seed):
+    noise = np.random.default_rng(seed).normal(size=(2, 60))
+    return hr.HelixData(force + 0.01 * noise[0], moment + 0.01 * noise[1], kappa, tau, force_sigma=0.01, moment_sigma=0.01)
+"""
+
 CASES = {
     "helix_equilibria": """
 rod = hr.Rod(1.0, 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
@@ -69,25 +82,12 @@ call = lambda i: jax.grad(end_moment)(jnp.array([0.1, -0.2, 0.5 + 0.01 * i]))
 rod = hr.Rod(1.0, 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
 call = lambda i: hr.helices_under_load(rod, -0.49 + 0.01 * i, 0.81, kappa_max=3.0, tau_range=(-3.0, 3.0))
 """,
-    "fit_stiffness": """
-rod = hr.Rod(1.0, 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
-rng = np.random.default_rng(0)
-kappa, tau = rng.uniform(0.3, 2.0, 60), rng.uniform(-1.5, 1.5, 60)
-eq = hr.helix_equilibria(rod, kappa, tau)
-force, moment = np.asarray(eq.force[:, 0]), np.asarray(eq.moment[:, 0])
+    "fit_stiffness": HELIX_DATA + """
 def call(i):
-    noise = np.random.default_rng(i).normal(size=(2, 60))
-    data = hr.HelixData(force + 0.01 * noise[0], moment + 0.01 * noise[1], kappa, tau, force_sigma=0.01, moment_sigma=0.01)
-    return hr.fit_stiffness(data, uhat=(1.0, 0.0, 0.0)).rod
+    return hr.fit_stiffness(helix_data(i), uhat=(1.0, 0.0, 0.0)).rod
 """,
-    "bootstrap": """
-rod = hr.Rod(1.0, 1.5, 0.8, 0.5, 0.5, (1.0, 0.0, 0.0))
-rng = np.random.default_rng(0)
-kappa, tau = rng.uniform(0.3, 2.0, 60), rng.uniform(-1.5, 1.5, 60)
-eq = hr.helix_equilibria(rod, kappa, tau)
-force, moment = np.asarray(eq.force[:, 0]), np.asarray(eq.moment[:, 0])
-noise = np.random.default_rng(0).normal(size=(2, 60))
-data = hr.HelixData(force + 0.01 * noise[0], moment + 0.01 * noise[1], kappa, tau, force_sigma=0.01, moment_sigma=0.01)
+    "bootstrap": HELIX_DATA + """
+data = helix_data(0)
 fit = hr.fit_stiffness(data, uhat=(1.0, 0.0, 0.0))
 call = lambda i: hr.bootstrap(data, fit, 100, jax.random.key(i)).samples["K1"]
 """,

@@ -463,9 +463,10 @@ def fit_cost_at(fit: StiffnessFit, q) -> float:
     physical values `q` (in the order of `fit.names`), by the program of the model's
     Jacobian its error analysis compiled; NaN where the model is not defined there."""
     problem = fit.problem
-    _, (r, _) = jacobian_and_predictions(
-        np.asarray(q, float), problem.model, problem.parameterisation, once=problem.jacobian_once
-    )
+    param = problem.parameterisation
+    # In the precision the program was compiled for (its fixed values').
+    q = np.asarray(q, np.asarray(param.fixed_values).dtype)
+    _, (r, _) = jacobian_and_predictions(q, problem.model, param, once=problem.jacobian_once)
     observed = problem.model.observed_residuals()
     r = np.asarray(r) if observed is None else np.asarray(r)[observed]
     cost = 0.5 * float(r @ r)

@@ -156,6 +156,12 @@ def test_linearity_check_of_a_well_determined_fit(noisy_fit):
     object.__setattr__(scaled, "covariance", fit.covariance * fit.chi2_reduced)
     np.testing.assert_allclose(hr.linearity_check(scaled).delta_chi2, check.delta_chi2, rtol=1e-8)
     assert "K1" in check.summary()
+    # What a flagged line says: a lower cost on it, the model's domain left, or neither.
+    cases = hr.LinearityCheck(names=("a", "b", "c", "d"), delta_chi2=np.array([[4.0, 4.1], [-1.0, 4.0], [np.nan, 4.0], [9.0, 4.0]]),
+                              expected=4.0, nonlinear=np.array([False, True, True, True]))
+    lines = cases.summary().splitlines()[1:]
+    assert cases.flagged == ("b", "c", "d") and "profile" not in lines[0]
+    assert "not the minimum" in lines[1] and "domain" in lines[2] and "quadratic" in lines[3]
     with pytest.raises(ValueError, match="k must be finite and > 0"):
         hr.linearity_check(fit, k=0.0)
     u = np.array([[0.1, 0.2, 0.3], [0.4, -0.1, 0.2], [-0.3, 0.5, 0.1], [0.2, 0.1, -0.4]])
@@ -185,3 +191,21 @@ def test_linearity_check_flags_a_tweezer_fit_whose_error_bars_are_not_its_likeli
     above = float(fit.params["K2"] + 2 * fit.stderr["K2"])
     profile = hr.profile_likelihood(fit, "K2", values=[float(fit.params["K2"]), above])
     assert float(profile.delta_chi2[1]) < min(4.0, float(check.delta_chi2[0, 1]))
+
+
+@pytest.mark.heavy
+def test_linearity_check_holds_the_sigmas_of_errors_in_variables():
+    """The bundled tweezer example's fit (errors in variables through its force sigmas) is
+    the fixed point of Orear's iteration: the minimum of the cost at its own sigmas, which
+    its Jacobian holds.  Along every line the check's cost (sigmas held at the fit's) is
+    then the error bars' quadratic as k -> 0: 1 to 1e-2 at k = 0.02 (with the sigmas moving
+    with the parameters the ratio ran from -62 to +64 and every parameter was flagged)."""
+    from helixrod import dna
+
+    rod = dna.load_tweezer_example().rod
+    example = dna.load_tweezer_curves_example()
+    fit = hr.fit_stiffness(example.data, uhat=rod.uhat, init=rod, fix={"K1": float(rod.K1), "K13": 0.0}, fit_offsets=True)
+    assert "residual_sigma" in fit.predicted
+    small = hr.linearity_check(fit, k=0.02)
+    np.testing.assert_allclose(small.delta_chi2 / small.expected, 1.0, rtol=1e-2)
+    assert small.flagged == ()

@@ -461,12 +461,20 @@ def jacobian_and_predictions(q, model: AbstractForwardModel, param: Parameterisa
 def fit_cost_at(fit: StiffnessFit, q) -> float:
     """The cost $\\tfrac12\\sum r^2$ of `fit`'s problem (its observed residuals) at the free
     physical values `q` (in the order of `fit.names`), by the program of the model's
-    Jacobian its error analysis compiled; NaN where the model is not defined there."""
+    Jacobian its error analysis compiled; NaN where the model is not defined there.  Sigmas
+    that move with the parameters (errors in variables, `moving_sigmas`) are held at the
+    fit's own: the fit is the fixed point of Orear's iteration, the minimum of the cost at
+    its own sigmas, and its Jacobian holds them (with them moving, the bundled tweezer
+    example's cost along its error bars' lines was not even symmetric at 0.02 standard
+    errors)."""
     problem = fit.problem
     param = problem.parameterisation
     # In the precision the program was compiled for (its fixed values').
     q = np.asarray(q, np.asarray(param.fixed_values).dtype)
-    _, (r, _) = jacobian_and_predictions(q, problem.model, param, once=problem.jacobian_once)
+    _, (r, predicted) = jacobian_and_predictions(q, problem.model, param, once=problem.jacobian_once)
+    moving = problem.model.moving_sigmas(predicted)
+    if moving is not None:
+        r = np.asarray(r) * np.asarray(moving) / np.asarray(fit.predicted["residual_sigma"])
     observed = problem.model.observed_residuals()
     r = np.asarray(r) if observed is None else np.asarray(r)[observed]
     cost = 0.5 * float(r @ r)

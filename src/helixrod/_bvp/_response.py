@@ -85,10 +85,13 @@ class ResponseCurve(eqx.Module):
     value of the swept control at which the curve first loses stability (between the last
     stable point and the next -- unstable, or failed where the branch ends at a fold --
     located by bisection on the solutions; NaN if it never does, where stability is not
-    defined, or under `jax.jit`/`vmap`), and `critical_kind`: `"branch point"` (the branch
-    goes on through it, now unstable: a bifurcation, as Euler's), `"fold"` (the branch ends
-    there: no nearby equilibrium beyond it), or `"none"`; `critical_force`,
-    `critical_rotation` name it.
+    defined, in `mode="independent"` (its points are no branch to bisect along) or under
+    `jax.jit`/`vmap`), and `critical_kind`: `"branch point"` (the branch goes on through it,
+    now unstable: a bifurcation, as Euler's), `"fold"` (the branch ends there: no nearby
+    equilibrium beyond it), or `"none"`; `critical_force`, `critical_rotation` name it.
+    Where the solves fail on the way to the loss (between a stable point whose margin has
+    not fallen and later unstable ones) it is not located: NaN, `"none"`; read the
+    points' `instability_index`.
     """
 
     controls: str = eqx.field(static=True)

@@ -64,6 +64,8 @@ def test_wlc_against_the_exact_chain():
     # Outside their domain: concrete values raise, traced ones are NaN beside good ones.
     with pytest.raises(ValueError, match="wlc_extension: force must be finite and >= 0"):
         tw.wlc_extension(-1.0)
+    with pytest.raises(ValueError, match="wlc_free_energy: force must be finite and >= 0"):
+        tw.wlc_free_energy(-1.0)
     with pytest.raises(ValueError, match=r"wlc_force: relative_extension must be in \[0, 1\)"):
         tw.wlc_force(1.2)
     z = jax.vmap(tw.wlc_extension)(jnp.array([2.0, -1.0]))

@@ -172,6 +172,7 @@ def wlc_free_energy(force: ArrayLike, persistence_length: ArrayLike = 50.0, temp
     contour length of a worm-like chain held at `force`, in closed form from the
     interpolation ($fz - \\int_0^z f\\,dz'$ in units of $k_BT/A$)."""
     force = jnp.asarray(force, float_dtype())
+    require_valid(jnp.isfinite(force) & (force >= 0), "wlc_free_energy: force must be finite and >= 0 pN", force)
     persistence_length = _persistence(persistence_length, "wlc_free_energy")
     energy_unit = thermal_energy(temperature) / persistence_length
     f = force / energy_unit

@@ -553,8 +553,8 @@ def stability_atlas(
 
     ```python
     rod = helixrod.Rod(1.0, 1.5, 0.8, uhat=(0.0, 1.0, 0.3))
-    kappa, tau = jnp.meshgrid(jnp.linspace(0.2, 2.0, 40), jnp.linspace(-1.0, 1.0, 40))
-    atlas = helixrod.stability_atlas(rod, kappa, tau, 10.0)
+    kappa, tau = jnp.meshgrid(jnp.linspace(0.2, 1.0, 40), jnp.linspace(-0.5, 0.5, 40))
+    atlas = helixrod.stability_atlas(rod, kappa, tau, 5.0)
     atlas.stable[..., 0], atlas.critical_length[..., 0]
     ```
     """

@@ -311,7 +311,7 @@ def follow_branch(
     rod = helixrod.Rod(1.0, 1.5, 0.8)
     load = lambda P: helixrod.Loaded(force=jnp.stack([0.0, 0.0, -P]))
     straight = helixrod.follow_branch(rod, 1.0, load, (1.0, 4.0))
-    (bp,) = straight.points("branch point")          # P = pi^2/4
+    bp = straight.points("branch point")[0]          # P = pi^2/4 (K1's; K2's is at 1.5 pi^2/4)
     buckled = helixrod.follow_branch(rod, 1.0, load, (1.0, 4.0), switch=bp)
     ```
     """

@@ -89,6 +89,9 @@ def linearity_check(fit: StiffnessFit, k: float = 2.0) -> LinearityCheck:
     **Example**
 
     ```python
+    rod = helixrod.Rod(1.0, 1.5, 0.8, K13=0.2, K23=-0.1, uhat=(0.8, 0.6, 0.3))
+    rng = np.random.default_rng(0)
+    data = helixrod.synthetic_helix_data(rod, rng.uniform(0.3, 2.5, 60), rng.uniform(-1.5, 2.0, 60), 0.01, jax.random.key(1))
     fit = helixrod.fit_stiffness(data, uhat=rod.uhat)
     check = helixrod.linearity_check(fit)
     check.flagged          # () where the error bars hold; else profile those parameters

@@ -635,6 +635,9 @@ def fit_stiffness(
     **Example**
 
     ```python
+    rod = helixrod.Rod(1.0, 1.5, 0.8, K13=0.2, K23=-0.1, uhat=(0.8, 0.6, 0.3))  # the truth
+    rng = np.random.default_rng(0)
+    kappa, tau = rng.uniform(0.3, 2.5, 60), rng.uniform(-1.5, 2.0, 60)          # 60 helices
     data = helixrod.synthetic_helix_data(rod, kappa, tau, 0.01, jax.random.key(1))
     fit = helixrod.fit_stiffness(data, uhat=rod.uhat)
     fit.params["K1"], fit.stderr["K1"], fit.identifiability.weak

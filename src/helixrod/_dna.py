@@ -106,11 +106,7 @@ def bdna_from_helix(kappa: ArrayLike, tau: ArrayLike, length_per_bp: ArrayLike) 
     Needs a helix ($|u| > 0$, finite) and $\\ell > 0$: concrete inputs that break this raise
     `ValueError`, traced ones give NaN.
     """
-    dtype = jnp.result_type(float)
-    kappa, tau, length_per_bp = (jnp.asarray(x, dtype) for x in (kappa, tau, length_per_bp))
-    ok = _finite_positive(jnp.hypot(kappa, tau)) & _finite_positive(length_per_bp)
-    require_valid(ok, "bdna_from_helix: need a helix (kappa, tau finite, not both 0) and length_per_bp > 0", kappa, tau, length_per_bp)
-    kappa, tau = jnp.where(ok, kappa, jnp.nan), jnp.where(ok, tau, jnp.nan)
+    kappa, tau, length_per_bp = _checked_helix(kappa, tau, length_per_bp, "bdna_from_helix", "length_per_bp")
     rise, turns_per_bp = height_and_turns(kappa, tau, length_per_bp)
     radius = kappa / (kappa**2 + tau**2)
     return rise, 1.0 / turns_per_bp, radius
@@ -122,11 +118,7 @@ def observables_from_helix(kappa: ArrayLike, tau: ArrayLike, length: ArrayLike) 
     contour length $L$ = `length` (`height_and_turns`).  Needs a helix ($\\kappa, \\tau$ finite,
     not both 0: a straight untwisted filament has no axis) and $L$ finite and > 0: concrete
     inputs that break this raise `ValueError`, traced ones give NaN."""
-    dtype = jnp.result_type(float)
-    kappa, tau, length = (jnp.asarray(x, dtype) for x in (kappa, tau, length))
-    ok = _finite_positive(jnp.hypot(kappa, tau)) & _finite_positive(length)
-    require_valid(ok, "observables_from_helix: need a helix (kappa, tau finite, not both 0) and length > 0", kappa, tau, length)
-    height, turns = height_and_turns(jnp.where(ok, kappa, jnp.nan), jnp.where(ok, tau, jnp.nan), length)
+    height, turns = height_and_turns(*_checked_helix(kappa, tau, length, "observables_from_helix", "length"))
     return height, 2 * jnp.pi * turns
 
 
@@ -159,6 +151,17 @@ def helix_from_observables(extension: ArrayLike, rotation: ArrayLike, length: Ar
 
 def _finite_positive(x):
     return jnp.isfinite(x) & (x > 0)
+
+
+def _checked_helix(kappa, tau, length, owner: str, length_name: str):
+    """`(kappa, tau, length)` as float arrays, a helix ($\\kappa, \\tau$ finite, not both 0)
+    and a length finite and > 0: concrete values that are not raise `ValueError` naming
+    `owner`, traced ones make kappa and tau NaN."""
+    dtype = jnp.result_type(float)
+    kappa, tau, length = (jnp.asarray(x, dtype) for x in (kappa, tau, length))
+    ok = _finite_positive(jnp.hypot(kappa, tau)) & _finite_positive(length)
+    require_valid(ok, f"{owner}: need a helix (kappa, tau finite, not both 0) and {length_name} > 0", kappa, tau, length)
+    return jnp.where(ok, kappa, jnp.nan), jnp.where(ok, tau, jnp.nan), length
 
 
 def _contour(n_bp, length_per_bp, owner: str):

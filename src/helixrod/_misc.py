@@ -11,6 +11,11 @@ from __future__ import annotations
 import functools
 import json
 import math
+import os
+import stat
+import sys
+import tempfile
+import warnings
 
 import equinox as eqx
 import jax
@@ -60,10 +65,6 @@ FLOAT32_WARNING = (
 
 @functools.cache
 def _warn_of_float32() -> None:
-    import os
-    import sys
-    import warnings
-
     # Point at the caller's code: the first frame outside helixrod and the libraries it
     # calls through (JAX traces helixrod's functions from its own frames).
     package = os.path.dirname(os.path.abspath(__file__))
@@ -668,10 +669,6 @@ def write_atomically(path, write, *, binary: bool = True) -> None:
     name is used exactly as given (no suffix added).  The file gets the permissions of the
     one it replaces, or those of a new file under the process's umask (the temporary file
     is private until then)."""
-    import os
-    import stat
-    import tempfile
-
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
     try:

@@ -136,6 +136,14 @@ def _persistence(persistence_length, owner: str) -> Array:
     return jnp.where(ok, A, jnp.nan)
 
 
+def _pulling_force(force, owner: str) -> Array:
+    """A force (pN) on a worm-like chain, finite and >= 0: concrete values that are not
+    raise `ValueError` naming `owner` (traced ones are the caller's to make NaN)."""
+    force = jnp.asarray(force, float_dtype())
+    require_valid(jnp.isfinite(force) & (force >= 0), f"{owner}: force must be finite and >= 0 pN", force)
+    return force
+
+
 def _dimensionless_force(force, persistence_length, temperature):
     return force * persistence_length / thermal_energy(temperature)
 
@@ -160,8 +168,7 @@ def wlc_extension(force: ArrayLike, persistence_length: ArrayLike = 50.0, temper
     at `force` (pN), the inverse of `wlc_force`; differentiable (implicit function).
     $F \\ge 0$: a concrete negative or non-finite force raises `ValueError`, a traced one
     gives NaN (a persistence as `wlc_force`)."""
-    force = jnp.asarray(force, float_dtype())
-    require_valid(jnp.isfinite(force) & (force >= 0), "wlc_extension: force must be finite and >= 0 pN", force)
+    force = _pulling_force(force, "wlc_extension")
     f = _dimensionless_force(force, _persistence(persistence_length, "wlc_extension"), temperature)
     ok = jnp.isfinite(f) & (f >= 0)
     return jnp.where(ok, _wlc_relative_extension(jnp.where(ok, f, 1.0)), jnp.nan)
@@ -171,8 +178,7 @@ def wlc_free_energy(force: ArrayLike, persistence_length: ArrayLike = 50.0, temp
     """$\\int_0^F z\\,dF'$ (pN, i.e. pN nm per nm of contour): minus the Gibbs free energy per
     contour length of a worm-like chain held at `force`, in closed form from the
     interpolation ($fz - \\int_0^z f\\,dz'$ in units of $k_BT/A$)."""
-    force = jnp.asarray(force, float_dtype())
-    require_valid(jnp.isfinite(force) & (force >= 0), "wlc_free_energy: force must be finite and >= 0 pN", force)
+    force = _pulling_force(force, "wlc_free_energy")
     persistence_length = _persistence(persistence_length, "wlc_free_energy")
     energy_unit = thermal_energy(temperature) / persistence_length
     f = force / energy_unit

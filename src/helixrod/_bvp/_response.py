@@ -383,6 +383,12 @@ _ends_of_points = jit(_point_ends, run_once=True)
 _end_of_point = jit(axial_end_condition, run_once=True)
 
 
+def _point(tree, i):
+    """Point `i` of a batch of solutions (or ends) held on the host (NumPy: no program
+    compiled per field, as JAX's slicing would)."""
+    return jax.tree.map(lambda a: a[i], tree)
+
+
 def _resolved(rod, length, kind, values, sols: BoundaryValueSolution, options: BoundaryValueOptions) -> BoundaryValueSolution:
     """The curve's solutions `sols` (concrete, tested on `options.stability_pieces` pieces)
     with each converged point whose test did not resolve its wrench (index -1) tested again
@@ -398,10 +404,9 @@ def _resolved(rod, length, kind, values, sols: BoundaryValueSolution, options: B
     fields = ("instability_index", "stability_margin", "unstable_direction", "rotation")
     tests = {name: np.array(getattr(points, name)) for name in fields}
     pieces = sols.stability_pieces
-    take = lambda tree, i: jax.tree.map(lambda a: a[i], tree)  # noqa: E731
-    test_pieces_ahead(rod, length, [(take(ends, i), take(points, i)) for i in unresolved], options)
+    test_pieces_ahead(rod, length, [(_point(ends, i), _point(points, i)) for i in unresolved], options)
     for i in unresolved:
-        tested = jax.device_get(resolved_stability(rod, length, take(ends, i), take(points, i), options))
+        tested = jax.device_get(resolved_stability(rod, length, _point(ends, i), _point(points, i), options))
         for name in fields:
             tests[name][i] = getattr(tested, name)
         pieces = max(pieces, tested.stability_pieces)
@@ -688,7 +693,7 @@ def _bisection_ahead(rod, length, kind, values, sols: BoundaryValueSolution, opt
     candidates = _losses_of_stability(host, host_values)[1]
     if candidates.size:
         i = int(candidates[0])
-        good = jax.tree.map(lambda a: a[i], host)
+        good = _point(host, i)
         end = _end_of_point(rod, length, kind, host_values[i])
         compile_solve_ahead(rod, length, unloaded_clamp(rod), end, good.warm_start(), options)
 
@@ -706,12 +711,11 @@ def _first_loss_of_stability(rod, length, kind, values, swept, sols, options):
     failed, candidates = _losses_of_stability(sols, values)
     column = AXIAL_OBSERVABLES.index(swept)
     start = unloaded_clamp(rod)
-    take = lambda j: jax.tree.map(lambda a: a[j], sols)  # noqa: E731
     distance = lambda s, t: float(np.linalg.norm(np.concatenate([s.force - t.force, s.moment0 - t.moment0])))  # noqa: E731
     # Every stable -> unstable step, and the first few stable -> failed ones.
     candidates = candidates[~failed[candidates + 1] | (np.cumsum(failed[candidates + 1]) <= FOLD_CANDIDATES)]
     for i in candidates:
-        good, bad = take(i), take(i + 1)
+        good, bad = _point(sols, i), _point(sols, i + 1)
         a, b = values[i], values[i + 1]
         first = distance(good, bad)
         for _ in range(CRITICAL_BISECTIONS):

@@ -635,6 +635,13 @@ def _moment_loaded(end: EndCondition) -> bool:
     return int(kind) == LOADED and bool(np.any(moment != 0))
 
 
+def _finer_pieces(pieces: int, needed: int) -> int:
+    """The pieces of the next test of an equilibrium whose test on `pieces` did not resolve
+    its wrench: twice as many, or as many as the wrench asks (`needed`), at most
+    `MAX_STABILITY_PIECES`."""
+    return min(max(2 * pieces, needed), MAX_STABILITY_PIECES)
+
+
 def resolved_test(rod, length, end: EndCondition, inputs: tuple, tested: tuple, options: BoundaryValueOptions, end_position):
     """`(test, pieces)`: the stability test `tested` = (index, margin, push) of one concrete
     equilibrium at `end` (`inputs` = its `stability_inputs`, its end at `end_position`) on
@@ -647,8 +654,7 @@ def resolved_test(rod, length, end: EndCondition, inputs: tuple, tested: tuple, 
         result, index = jax.device_get((inputs[-1], tested[0]))
         if not (bool(succeeded(result)) and int(index) < 0) or _moment_loaded(end):
             break
-        needed = wrench_pieces(rod, length, inputs[0], inputs[1], inputs[2], end_position)
-        pieces = min(max(2 * pieces, needed), MAX_STABILITY_PIECES)
+        pieces = _finer_pieces(pieces, wrench_pieces(rod, length, inputs[0], inputs[1], inputs[2], end_position))
         tested = stability_of_nodes(rod, length, end, *inputs, dataclasses.replace(options, stability_pieces=pieces))
     return tested, pieces
 
@@ -663,8 +669,7 @@ def test_pieces_ahead(rod, length, points, options: BoundaryValueOptions) -> Non
     counts = {}
     for end, sol in points:
         needed = wrench_pieces(rod, length, sol.force, sol.moment0, sol.node_position, sol.end_position)
-        pieces = min(max(2 * options.stability_pieces, needed), MAX_STABILITY_PIECES)
-        counts.setdefault(pieces, (end, sol))
+        counts.setdefault(_finer_pieces(options.stability_pieces, needed), (end, sol))
     if len(counts) > 1:  # (one count: its call compiles it as soon)
         for pieces, (end, sol) in counts.items():
             compile_ahead(stability_of_nodes, rod, length, end, *stability_inputs(sol), dataclasses.replace(options, stability_pieces=pieces))

@@ -107,6 +107,11 @@ call = lambda i: hr.solve_boundary_value(rod, 1.0, end=hr.Loaded(force=(0.0, 0.0
 spring = hr.Rod(1.0, 1.0, 1 / 1.3, uhat=(0.0, 1.0, 0.3))
 call = lambda i: hr.force_extension(spring, 30.0, np.linspace(0.0, 0.05 + 0.001 * i, 50), rotation=30.0 * 1.044).extension
 """,
+    "force_extension (across its critical force)": """
+spring = hr.Rod(1.0, 1.0, 1 / 1.3, uhat=(0.0, 1.0, 0.3))
+length = 3 * 2 * np.pi / np.hypot(1.0, 0.3)
+call = lambda i: hr.force_extension(spring, length, np.linspace(0.01, 0.5 + 0.001 * i, 50)).critical
+""",
     "stability_atlas (20 x 20)": """
 spring = hr.Rod(1.0, 1.0, 1 / 1.3, uhat=(0.0, 1.0, 0.3))
 kappa, tau = np.meshgrid(np.linspace(0.2, 1.5, 20), np.linspace(-1.0, 1.0, 20))

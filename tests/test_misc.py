@@ -464,3 +464,57 @@ def test_write_atomically_gives_the_permissions_of_a_plain_write(tmp_path):
         assert stat.S_IMODE(kept.stat().st_mode) == 0o640 and kept.read_bytes() == b"new"
     finally:
         os.umask(old)
+
+
+def test_host_method_binds_like_a_method_without_a_module_per_access():
+    """`host_method`: the same result as the plain method, bound by `functools.partial`
+    (equinox builds a `BoundMethod` module at each access of a plain one); the class
+    attribute is the function itself, and an abstract method stays abstract."""
+    import abc
+
+    class Scaled(eqx.Module):
+        x: np.ndarray
+
+        def plain(self, k):
+            return self.x * k
+
+        @_misc.host_method
+        def on_host(self, k):
+            """Scaled by k."""
+            return self.x * k
+
+    class Base(eqx.Module):
+        @_misc.host_method
+        @abc.abstractmethod
+        def value(self) -> float:
+            """The value."""
+
+    class Concrete(Base):
+        @_misc.host_method
+        def value(self) -> float:
+            return 2.0
+
+    a = Scaled(np.arange(3.0))
+    np.testing.assert_array_equal(a.on_host(2.0), a.plain(2.0))
+    assert isinstance(a.on_host, functools.partial) and not isinstance(a.on_host, eqx.Module)
+    assert isinstance(a.plain, eqx.Module)  # (what host_method avoids)
+    assert Scaled.on_host(a, 3.0).tolist() == [0.0, 3.0, 6.0] and Scaled.on_host.__doc__ == "Scaled by k."
+    assert Base.__abstractmethods__ == frozenset({"value"}) and not Concrete.__abstractmethods__
+    with pytest.raises(TypeError):
+        Base()
+    assert Concrete().value() == 2.0
+
+
+def test_default_starts_are_those_of_the_default_key_drawn_once():
+    """The default fit's starts (`key=None`) are those of `jax.random.key(0)`, drawn once
+    per shape: the cached draw is read-only and the starts are a new array each call."""
+    from helixrod._fit._parameters import Parameterisation
+
+    param = Parameterisation({"uhat1": 1.0, "uhat2": 0.0, "uhat3": 0.0}, 1.0, 1.0)
+    z = np.array([0.1, 0.2, -0.3, 0.05, 0.0])
+    default, explicit = param.starts(z, 6, None), param.starts(z, 6, jax.random.key(0))
+    np.testing.assert_array_equal(default, explicit)
+    np.testing.assert_array_equal(default[0], z)
+    default[1] = 99.0
+    np.testing.assert_array_equal(param.starts(z, 6, None), explicit)
+    assert not np.array_equal(param.starts(z, 6, jax.random.key(1)), explicit)

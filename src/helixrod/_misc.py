@@ -93,6 +93,21 @@ def safe_sqrt(x: ArrayLike) -> Array:
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
 
 
+class host_method:
+    """A method of an `equinox.Module` that is called on the host only -- never passed as a
+    callable into `jax.jit` or another transformation: bound with `functools.partial`.
+    equinox binds every other method read from a module as a `BoundMethod`, itself a module
+    (so that it can be a pytree), built at each access: measured 18.9 us a call against
+    1.5 us here, and a default helix fit reads eleven such methods (~4 % of its time)."""
+
+    def __init__(self, function):
+        self.function = function
+        functools.update_wrapper(self, function)
+
+    def __get__(self, instance, owner=None):
+        return self.function if instance is None else functools.partial(self.function, instance)
+
+
 def replaced(module, **changes):
     """`dataclasses.replace(module, **changes)` for an `equinox.Module` whose new field values
     are of the kinds its fields hold (a program's results in place of others), without

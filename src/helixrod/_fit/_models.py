@@ -42,7 +42,7 @@ from .._bvp import AXIAL_CONTROLS, AXIAL_OBSERVABLES, BoundaryValueOptions, Clam
 from .._bvp import axial_response, solve_boundary_value
 from .._compile import jit
 from .._equilibria import helix_equilibria
-from .._misc import jacobian_forward, random_integers, random_normal, random_split
+from .._misc import host_method, jacobian_forward, random_integers, random_normal, random_split
 from ._finite_data import EndResponseData, ShapeData
 from ._helix_data import HelixData, measured
 from ._parameters import ModelParameter
@@ -72,6 +72,7 @@ class AbstractForwardModel(eqx.Module):
         """The model's own parameters besides the rod's (none by default)."""
         return ()
 
+    @host_method
     def observed_residuals(self) -> np.ndarray | None:
         """Mask `(m,)` of the residuals that are observations (concrete, from the data), or
         `None` when all are.  A residual of a quantity not measured at a point is held at
@@ -79,6 +80,7 @@ class AbstractForwardModel(eqx.Module):
         it out of its residuals, degrees of freedom and error analysis."""
         return None
 
+    @host_method
     def observation_count(self) -> int | None:
         """The number of observations (residuals the fit keeps), where known without
         evaluating the model (`None` otherwise): the early stop of the default multistart
@@ -124,11 +126,13 @@ class AbstractForwardModel(eqx.Module):
     def frame_observed(self) -> bool:
         """Whether the data fix the director frame (then no frame symmetry applies)."""
 
+    @host_method
     @abc.abstractmethod
     def isotropic_start(self, uhat) -> tuple[float, float]:
         """Bending and twisting stiffness $(B, C)$ of an isotropic rod with intrinsic twist
         `uhat` that roughly fits the data: the default first start."""
 
+    @host_method
     @abc.abstractmethod
     def twist_scale(self, p0) -> float:
         """The unit in which the fit measures twists (`uhat`), from the start vector `p0`."""
@@ -281,6 +285,7 @@ class HelixModel(AbstractForwardModel):
         cFM = jnp.where(both, propagated(dF_dk, dF_dt, dM_dk, dM_dt), 0.0)
         return cFF, cFM, cMM
 
+    @host_method
     def isotropic_start(self, uhat):
         """Weighted linear least squares for an isotropic rod (K1 = K2 = B, K3 = C, no
         coupling) with intrinsic twist `uhat`.  Its energy-minimising register puts the
@@ -310,19 +315,23 @@ class HelixModel(AbstractForwardModel):
         floor = max(abs(B), abs(C), 1e-300) * 1e-2
         return max(B, floor), max(C, floor)
 
+    @host_method
     def _observation_masks(self) -> list[np.ndarray]:
         masks = [np.asarray(self.force_observed), np.asarray(self.moment_observed)]
         if self.use_register and self.register_sigma is not None:
             masks.append(np.ones(self.kappa.shape, bool))
         return masks
 
+    @host_method
     def observed_residuals(self):
         masks = self._observation_masks()
         return None if all(m.all() for m in masks) else np.concatenate(masks)
 
+    @host_method
     def observation_count(self):
         return int(sum(m.sum() for m in self._observation_masks()))
 
+    @host_method
     def twist_scale(self, p0):
         return float(np.median(np.hypot(np.asarray(self.kappa), np.asarray(self.tau))))
 
@@ -470,6 +479,7 @@ class EndResponseModel(AbstractForwardModel):
         observed = self.values[:, list(test.responses)]
         return ((prediction - observed) / self.sigma).T.reshape(-1), predicted
 
+    @host_method
     def isotropic_start(self, uhat):
         """$K = \\mathrm{diag}(B, B, C)$ from the bulk-helix equations at each point (end
         effects neglected): with $|u| = \\Theta/L$, $u_3 = h\\Theta/L^2$, the multipliers
@@ -497,6 +507,7 @@ class EndResponseModel(AbstractForwardModel):
             return 1.0, 1.0
         return B, C
 
+    @host_method
     def twist_scale(self, p0):
         return _twist_scale(p0, self.length)
 
@@ -546,6 +557,7 @@ class ShapeModel(AbstractForwardModel):
         prediction = jax.lax.map(one, self.end)
         return ((prediction - self.points) / self.sigma[..., None]).reshape(-1), {"points": prediction}
 
+    @host_method
     def isotropic_start(self, uhat):
         """$B = C$ = a stiffness that bends the rod by about a radian under the end loads:
         $|M|L + |F|L^2/2$ (1 when no load is prescribed)."""
@@ -556,6 +568,7 @@ class ShapeModel(AbstractForwardModel):
         scale = float(scale) if scale > 0 and np.isfinite(scale) else 1.0
         return scale, scale
 
+    @host_method
     def twist_scale(self, p0):
         return _twist_scale(p0, self.length)
 

@@ -688,18 +688,20 @@ def fit_stiffness(
         moving, holds = model, not stepwise and model.holds_weights
         if holds:
             model = model.with_weights_held(_evaluated(_physical_values(z0s[0], param)[0], model, param)[1])
+        agreement = None
         if stepwise:
             solved = _stepwise_multistart(z0s, model, param, solver, int(max_steps), report)
         elif adaptive:
             plausible = _plausible_cost(model, param, absolute_sigma)
-            solved = _adaptive_multistart(z0s, model, param, solver, int(max_steps), batching, report, plausible)
+            solved, agreement = _adaptive_multistart(z0s, model, param, solver, int(max_steps), batching, report, plausible)
             report.advance(n_starts - report.done)  # the starts left out by the early stop
         elif report.shown:
             solve = lambda _, batch: (None, _multistart(batch, model, param, solver, int(max_steps), batching))  # noqa: E731
             _, solved = scan_in_batches(solve, None, jnp.asarray(z0s), n_starts, batch_size(n_starts), report)
         else:  # one call: nothing is slower for want of a bar
             solved = _multistart(jnp.asarray(z0s), model, param, solver, int(max_steps), batching)
-        agreement = _agreement(solved[4], solved[1], model, param, solved[2])
+        if agreement is None:
+            agreement = _agreement(solved[4], solved[1], model, param, solved[2])
         if holds:
             solved, model, agreement = _held_weights_iteration(
                 solved, agreement, moving, model, param, solver, int(max_steps), batching
@@ -771,7 +773,8 @@ def _adaptive_multistart(z0s, model, param, solver, max_steps: int, batching: st
     A start cut short by the screening budget counts where it agrees with the best; the
     best start, if cut short, is then solved on from where it stopped with the full budget.
     Starts that agree on a best cost that is not `plausible` (a minimum that does not
-    describe the data: two starts may agree on a wrong one) do not stop it."""
+    describe the data: two starts may agree on a wrong one) do not stop it.  Also returns
+    their `_agreement` where it was found on the starts as returned (else None)."""
     total = int(z0s.shape[0])
     size = min(ADAPTIVE_BATCH, total)
     screen = min(SCREEN_STEPS, max_steps)
@@ -783,27 +786,30 @@ def _adaptive_multistart(z0s, model, param, solver, max_steps: int, batching: st
         report.advance(stop - done)
         done = stop
         solved = jax.tree.map(lambda *a: np.concatenate(a), *parts)
-        best, count, _ = _agreement(solved[4], solved[1], model, param, solved[2])
+        agreement = _agreement(solved[4], solved[1], model, param, solved[2])
+        best, count, _ = agreement
         if count >= ADAPTIVE_AGREE:
             if plausible(solved[1][best]):
                 break
-            agreed = agreed or (solved, best)
+            agreed = agreed or (solved, agreement)
     else:
         if agreed is not None:
             # No start found a minimum that describes the data: the model does not, and the
             # first agreement stands (as without the check).
-            solved, best = agreed
+            solved, agreement = agreed
+            best = agreement[0]
         elif screen < max_steps:  # no two starts agreed within the screening budget: all with the full one
-            return _multistart(z0s, model, param, solver, max_steps, batching)
+            return _multistart(z0s, model, param, solver, max_steps, batching), None
         else:
-            return solved
+            return solved, agreement
     if screen < max_steps and not succeeded(solved[2])[best]:
         z, cost, result, steps, p, q = _multistart(solved[0][best:best + 1], model, param, solver, max_steps, batching)
         # LM accepts steps at round-off, so the same minimum may come back a little higher.
         if bool(np.isfinite(cost[0])) and cost[0] <= solved[1][best] + 1e-6 * (1 + solved[1][best]):
             update = (z, cost, result, steps + solved[3][best], p, q)
             solved = jax.tree.map(lambda a, u: _replace_row(a, best, np.asarray(u)[0]), solved, update)
-    return solved
+            agreement = None
+    return solved, agreement
 
 
 def _replace_row(a, i, row):

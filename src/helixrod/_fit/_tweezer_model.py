@@ -38,7 +38,7 @@ from jaxtyping import Array
 
 from .._compile import jit
 from .._dna import helix_from_bdna, kT as thermal_energy
-from .._misc import jacobian_forward, random_integers, random_normal, random_split
+from .._misc import host_method, jacobian_forward, random_integers, random_normal, random_split
 from .._status import RESULTS
 from .._tweezer import PLECTONEME_TWIST_PERSISTENCE, filament_and_rise, response_point
 from ._models import AbstractForwardModel, forward_model
@@ -203,6 +203,7 @@ class TweezerModel(AbstractForwardModel):
         ])
         return J, (r, predicted)
 
+    @host_method
     def isotropic_start(self, uhat):
         """The isotropic rod $\\mathrm{diag}(B, B, C_w)$ with intrinsic helix `uhat` whose
         stretch and twist moduli at zero load are typical of DNA (S = 1100 pN, C = 410 pN
@@ -219,6 +220,7 @@ class TweezerModel(AbstractForwardModel):
         B, Cw = np.linalg.solve(matrix, np.array([S * radius**2, C]))
         return (float(B), float(Cw)) if B > 0 and Cw > 0 else (1000.0, 1000.0)
 
+    @host_method
     def twist_scale(self, p0):
         norm = float(np.linalg.norm(np.asarray(p0)[5:]))
         return norm if norm > 0 else 1.0 / float(self.length_per_bp)

@@ -84,8 +84,8 @@ def test_normal_equation_steps_are_the_damped_least_squares_steps():
     (optimistix's `DampedNewtonDescent`): the same step at damping from 1e3 down to
     1e-8 of the Gauss-Newton matrix's scale on a random 60 x 5 Jacobian of condition ~1e3;
     with an exact null direction (a repeated column) and a vanishing damping the floor
-    keeps the step finite and small along it, and the other directions are those of the
-    minimum-norm least-squares step (`numpy.linalg.lstsq`)."""
+    keeps the step finite and small along it (NaN without it), and the other directions
+    are those of the minimum-norm least-squares step (`numpy.linalg.lstsq`)."""
     import lineax as lx
     from helixrod._fit._solvers import NORMAL_DAMPING_FLOOR, NormalDampedNewtonDescent
 
@@ -113,7 +113,7 @@ def test_normal_equation_steps_are_the_damped_least_squares_steps():
     ours, _ = steps(singular, 1e30)
     minimum_norm = -np.linalg.lstsq(singular, r, rcond=None)[0]
     null = np.array([1.0, 0.0, 0.0, 0.0, -1.0]) / np.sqrt(2.0)
-    assert np.all(np.isfinite(ours)) and abs(ours @ null) < 1e-6 * np.linalg.norm(minimum_norm)
+    assert np.all(np.isfinite(ours)) and abs(ours @ null) < 1e-3 * np.linalg.norm(minimum_norm)
     np.testing.assert_allclose(ours - (ours @ null) * null, minimum_norm, rtol=1e-6)
     assert NORMAL_DAMPING_FLOOR <= 1e-10
 

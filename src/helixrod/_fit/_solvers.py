@@ -53,14 +53,14 @@ class RoundoffTrustRegion(optx.ClassicalTrustRegion):
         return new_state.step_size, accept | at_roundoff, result, new_state
 
 
-#: The smallest damping of `NormalDampedNewtonDescent`, relative to the largest diagonal
-#: entry of $J^TJ$: $J^TJ$ is formed to ~1e-16 of that entry, so that its eigenvalues
-#: below ~1e-14 of it are round-off.  Without a floor, the step of a Jacobian with an exact
-#: null direction (fewer observations than parameters, force-only data; in the test, a
-#: repeated column) was NaN once the trust region had grown to a step size of 1e20 (its
-#: component along the null direction 1.3e-7 at 1e10); with it, 1.5e-8 at any step size.
-#: A direction whose standard error is over 1e6 times the best determined one's then
-#: converges more slowly, where the cost does not see it.
+#: The smallest damping of `NormalDampedNewtonDescent`, relative to the smallest diagonal
+#: entry of $J^TJ$.  Without a floor, the step of a Jacobian with an exact null direction
+#: (fewer observations than parameters, force-only data; in the test, a repeated column)
+#: was NaN once the trust region had grown to a step size of 1e20 (its component along the
+#: null direction 1.3e-7 at 1e10, the step's norm 1.2); with it, 9.5e-5 at any step size,
+#: where the cost does not see it.  Relative to the largest entry instead, a fit with one
+#: residual 1e8 times as sensitive as the others (a register at a cusp,
+#: `tests/test_stress.py`) was damped in every other direction and ran out of steps.
 NORMAL_DAMPING_FLOOR = 1e-12
 
 
@@ -74,7 +74,7 @@ class NormalDampedNewtonDescent(optx.AbstractDescent):
     $\\lambda$ = 1 / step size (as `optimistix.DampedNewtonDescent`), from the normal
     equations: $J^TJ$ and $J^Tr$ formed once per accepted point (`query`) and each trial's
     small system solved by `solve_small` (no LAPACK call), with $\\lambda$ at least
-    `NORMAL_DAMPING_FLOOR` times the largest diagonal entry of $J^TJ$.  Forming $J^TJ$
+    `NORMAL_DAMPING_FLOOR` times the smallest diagonal entry of $J^TJ$.  Forming $J^TJ$
     squares the condition number of the step, not of the fit: its residuals, cost and
     error analysis are computed from $J$ itself.  Measured on `benchmarks/bench_fit.py`'s
     30 random helix problems (one core, process time per default fit, two alternating
@@ -93,7 +93,7 @@ class NormalDampedNewtonDescent(optx.AbstractDescent):
         gram, gradient = state.gram, state.gradient
         tiny, huge = jnp.finfo(gradient.dtype).eps, jnp.finfo(gradient.dtype).max
         damping = jnp.where(step_size > tiny, 1 / jnp.where(step_size > tiny, step_size, 1.0), huge)
-        damping = jnp.maximum(damping, NORMAL_DAMPING_FLOOR * jnp.max(jnp.diagonal(gram)))
+        damping = jnp.maximum(damping, NORMAL_DAMPING_FLOOR * jnp.min(jnp.diagonal(gram)))
         system = gram + damping * jnp.eye(gradient.shape[0], dtype=gradient.dtype)
         return -solve_small(system, gradient), optx.RESULTS.successful
 

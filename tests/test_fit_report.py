@@ -93,3 +93,10 @@ def test_a_fit_that_misses_the_data_says_so(rng):
     assert any("does not describe the data" in n and "115 degrees of freedom" in n for n in poor)
     scaled = hr.error_analysis(J, np.full(120, 10.0), values, np.ones(5), absolute_sigma=False)
     assert not any("does not describe" in n for n in scaled.identifiability.notes)
+
+
+def test_error_analysis_of_no_parameters():
+    """No parameters: no covariance, no directions, the cost of the residuals."""
+    analysis = hr.error_analysis(np.zeros((3, 0)), np.ones(3), {}, np.ones(0))
+    assert analysis.identifiability.weak == analysis.identifiability.determined == ()
+    assert analysis.covariance.shape == (0, 0) and analysis.cost == 1.5

@@ -79,45 +79,6 @@ def test_materialised_jacobian_takes_the_same_steps_and_keeps_the_final_residual
     assert final_residuals(optx.minimise(lambda y, _: jnp.sum(rosenbrock(y, None) ** 2), minimiser, jnp.zeros(2), max_steps=5, throw=False)) is None
 
 
-def test_normal_equation_steps_are_the_damped_least_squares_steps():
-    """`NormalDampedNewtonDescent` against lineax's QR of the damped least-squares problem
-    (optimistix's `DampedNewtonDescent`): the same step at damping from 1e3 down to
-    1e-8 of the Gauss-Newton matrix's scale on a random 60 x 5 Jacobian of condition ~1e3;
-    with an exact null direction (a repeated column) and a vanishing damping the floor
-    keeps the step finite and small along it (NaN without it), and the other directions
-    are those of the minimum-norm least-squares step (`numpy.linalg.lstsq`)."""
-    import lineax as lx
-    from helixrod._fit._solvers import NORMAL_DAMPING_FLOOR, NormalDampedNewtonDescent
-
-    rng = np.random.default_rng(3)
-    J = rng.normal(size=(60, 5)) @ np.diag([1.0, 3.0, 0.1, 10.0, 0.01])
-    r = rng.normal(size=60)
-
-    def steps(J, step_size):
-        f_info = optx.FunctionInfo.ResidualJac(jnp.asarray(r), lx.MatrixLinearOperator(jnp.asarray(J)))
-        y = jnp.zeros(5)
-        results = []
-        for descent in (NormalDampedNewtonDescent(), optx.DampedNewtonDescent(linear_solver=lx.QR())):
-            state = descent.query(y, f_info, descent.init(y, jax.eval_shape(lambda: f_info)))
-            step, result = descent.step(jnp.asarray(step_size), state)
-            assert result == optx.RESULTS.successful
-            results.append(np.asarray(step))
-        return results
-
-    scale = float(np.max(np.diag(J.T @ J)))
-    for damping in (1e3, 1.0, 1e-4, 1e-8):
-        ours, qr = steps(J, 1 / (damping * scale))
-        np.testing.assert_allclose(ours, qr, rtol=1e-9, atol=1e-12 * np.max(np.abs(qr)))
-    singular = J.copy()
-    singular[:, 4] = singular[:, 0]  # z0 - z4 is an exact null direction
-    ours, _ = steps(singular, 1e30)
-    minimum_norm = -np.linalg.lstsq(singular, r, rcond=None)[0]
-    null = np.array([1.0, 0.0, 0.0, 0.0, -1.0]) / np.sqrt(2.0)
-    assert np.all(np.isfinite(ours)) and abs(ours @ null) < 1e-3 * np.linalg.norm(minimum_norm)
-    np.testing.assert_allclose(ours - (ours @ null) * null, minimum_norm, rtol=1e-6)
-    assert NORMAL_DAMPING_FLOOR <= 1e-10
-
-
 def test_an_exact_null_direction_does_not_stall_the_fit():
     """Residuals that see z0 + z1 only: helixrod's LM reaches the minimum in as few steps
     as optimistix's (QR) and leaves the null direction where it started."""

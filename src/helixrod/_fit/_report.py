@@ -208,8 +208,11 @@ def error_analysis(
         errors = np.where(np.isfinite(errors), errors * np.sqrt(chi2_reduced), errors)
     # Each direction with its largest component positive; read as Python floats (NumPy's
     # scalars one by one: 198 -> 184 us the analysis of a 60 x 5 Jacobian).
-    signed = Vt * np.sign(Vt[np.arange(Vt.shape[0]), np.argmax(np.abs(Vt), axis=1)])[:, None]
-    for err, row in zip(errors.tolist(), signed.tolist()):
+    if Vt.size:
+        Vt_signed = Vt * np.sign(Vt[np.arange(Vt.shape[0]), np.argmax(np.abs(Vt), axis=1)])[:, None]
+    else:  # no parameters
+        Vt_signed = Vt
+    for err, row in zip(errors.tolist(), Vt_signed.tolist()):
         combination = tuple((name, round(value, 4)) for name, value in zip(names, row) if abs(value) >= 0.05)
         (weak if err > weak_threshold else determined).append(combination)
         (weak_err if err > weak_threshold else determined_err).append(err)

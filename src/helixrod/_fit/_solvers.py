@@ -9,11 +9,6 @@ the trust region by 4 each time until the step is below the tolerance: measured 
 80-point tweezer fit, 4 accepted steps and 22 rejected ones.  `LevenbergMarquardt` here
 also accepts a step whose predicted and actual changes of the loss are both below
 `ROUNDOFF` times the loss, after which the Cauchy termination sees the converged step.
-
-Its damped steps come from the normal equations (`NormalDampedNewtonDescent`), not from
-lineax's QR of the damped least-squares problem: the same steps in a few operations on a
-matrix of the size of the parameters, where a QR (three LAPACK calls at every step) took
-~2 us of a step's ~10-25 us in a helix fit.
 """
 
 from __future__ import annotations
@@ -24,10 +19,11 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import optax
 import optimistix as optx
 
-from .._misc import jacobian_forward, solve_small
+from .._misc import jacobian_forward
 
 #: The solvers `fit_stiffness` knows by name (for the command line; or pass an optimistix
 #: least-squares solver or minimiser, e.g. `optimistix.OptaxMinimiser(optax.adam(1e-2), ...)`).
@@ -53,60 +49,14 @@ class RoundoffTrustRegion(optx.ClassicalTrustRegion):
         return new_state.step_size, accept | at_roundoff, result, new_state
 
 
-#: The smallest damping of `NormalDampedNewtonDescent`, relative to the smallest diagonal
-#: entry of $J^TJ$.  Without a floor, the step of a Jacobian with an exact null direction
-#: (fewer observations than parameters, force-only data; in the test, a repeated column)
-#: was NaN once the trust region had grown to a step size of 1e20 (its component along the
-#: null direction 1.3e-7 at 1e10, the step's norm 1.2); with it, 9.5e-5 at any step size,
-#: where the cost does not see it.  Relative to the largest entry instead, a fit with one
-#: residual 1e8 times as sensitive as the others (a register at a cusp,
-#: `tests/test_stress.py`) was damped in every other direction and ran out of steps.
-NORMAL_DAMPING_FLOOR = 1e-12
-
-
-class _NormalEquations(eqx.Module):
-    gram: jax.Array
-    gradient: jax.Array
-
-
-class NormalDampedNewtonDescent(optx.AbstractDescent):
-    """The damped Newton (Levenberg--Marquardt) step $\\delta = -(J^TJ + \\lambda I)^{-1}J^Tr$,
-    $\\lambda$ = 1 / step size (as `optimistix.DampedNewtonDescent`), from the normal
-    equations: $J^TJ$ and $J^Tr$ formed once per accepted point (`query`) and each trial's
-    small system solved by `solve_small` (no LAPACK call), with $\\lambda$ at least
-    `NORMAL_DAMPING_FLOOR` times the smallest diagonal entry of $J^TJ$.  Forming $J^TJ$
-    squares the condition number of the step, not of the fit: its residuals, cost and
-    error analysis are computed from $J$ itself.  Measured on `benchmarks/bench_fit.py`'s
-    30 random helix problems (one core, process time per default fit, two alternating
-    runs each): median 4.30-4.45 ms with lineax's QR, 4.08-4.15 ms here, every problem at
-    its global minimum either way."""
-
-    def init(self, y, f_info_struct) -> _NormalEquations:
-        n = y.shape[0]
-        return _NormalEquations(jnp.zeros((n, n), y.dtype), jnp.zeros(n, y.dtype))
-
-    def query(self, y, f_info, state) -> _NormalEquations:
-        J = f_info.jac.as_matrix()
-        return _NormalEquations(J.T @ J, J.T @ f_info.residual)
-
-    def step(self, step_size, state: _NormalEquations):
-        gram, gradient = state.gram, state.gradient
-        tiny, huge = jnp.finfo(gradient.dtype).eps, jnp.finfo(gradient.dtype).max
-        damping = jnp.where(step_size > tiny, 1 / jnp.where(step_size > tiny, step_size, 1.0), huge)
-        damping = jnp.maximum(damping, NORMAL_DAMPING_FLOOR * jnp.min(jnp.diagonal(gram)))
-        system = gram + damping * jnp.eye(gradient.shape[0], dtype=gradient.dtype)
-        return -solve_small(system, gradient), optx.RESULTS.successful
-
-
 class LevenbergMarquardt(optx.AbstractGaussNewton):
-    """Levenberg--Marquardt (optimistix's Gauss--Newton loop with the damped Newton steps
-    of `NormalDampedNewtonDescent`) with the round-off acceptance of
-    `RoundoffTrustRegion`."""
+    """Levenberg--Marquardt (optimistix's damped Newton descent with a QR solve) with the
+    round-off acceptance of `RoundoffTrustRegion`."""
 
     rtol: float
     atol: float
     norm: Callable
-    descent: NormalDampedNewtonDescent
+    descent: optx.DampedNewtonDescent
     search: RoundoffTrustRegion
     verbose: Callable
 
@@ -114,7 +64,7 @@ class LevenbergMarquardt(optx.AbstractGaussNewton):
         self.rtol = rtol
         self.atol = atol
         self.norm = norm
-        self.descent = NormalDampedNewtonDescent()
+        self.descent = optx.DampedNewtonDescent(linear_solver=lx.QR())
         self.search = RoundoffTrustRegion()
         self.verbose = _quiet if verbose is None else verbose
 

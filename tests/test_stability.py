@@ -261,3 +261,77 @@ def test_unstable_planar_elastica_is_left_for_a_stable_state():
     assert bool(planar.ok) and int(planar.instability_index) >= 1
     found = helixrod.solve_boundary_value(rod, L, end=end)
     assert bool(found.stable) and abs(-float(found.force[2]) - P) > 1e-3 * P
+
+
+def test_condensed_is_a_schur_complement_that_keeps_the_inertia():
+    """`condensed` (the elimination of a chain's inner node) against numpy: the Schur
+    complement of the node's block in the assembled (a, c, d) matrix, and Haynsworth's
+    inertia additivity -- the negative eigenvalues of the whole equal those of the node's
+    block plus those of the result -- on random symmetric blocks of mixed inertia."""
+    import jax.numpy as jnp
+
+    from helixrod._bvp._stability import condensed
+
+    rng = np.random.default_rng(7)
+    for shift in (-3.0, 0.0, 3.0):
+        S, P = (a + a.T + shift * np.eye(12) for a in rng.normal(size=(2, 12, 12)))
+        whole = np.zeros((18, 18))
+        whole[:12, :12] += S
+        whole[6:, 6:] += P
+        order = [*range(6), *range(12, 18), *range(6, 12)]  # (a, d, c)
+        whole = whole[np.ix_(order, order)]
+        pivot = whole[12:, 12:]
+        expected = whole[:12, :12] - whole[:12, 12:] @ np.linalg.solve(pivot, whole[12:, :12])
+        result, negatives = condensed(jnp.asarray(S), jnp.asarray(P))
+        np.testing.assert_allclose(result, expected, rtol=1e-10, atol=1e-10)
+        assert int(negatives) == int(np.sum(np.linalg.eigvalsh(pivot) < 0))
+        assert int(np.sum(np.linalg.eigvalsh(whole) < 0)) == int(negatives) + int(np.sum(np.linalg.eigvalsh(expected) < 0))
+
+
+@pytest.mark.heavy
+def test_chains_of_sub_pieces_resolve_what_more_pieces_did():
+    """The 3-turn spring pulled to F = 0.31 (past its critical force, on the branch the
+    curve follows: index 8) needs up to 5 sub-pieces in each of the 16 pieces of the test.
+    Before, 16 and 32 pieces did not resolve it (index -1) and 64, 128, 256 gave 8: the
+    chained test gives 8 on 16 and 32 pieces too, with margins close to the finer ones'
+    (-297 on 16, -276 on 64, -275.5 on 256: the metric's discretisation).  Its margin is that
+    of the exact 16-piece Hessian (the inner nodes eliminated exactly): with twice the
+    sub-pieces it moves by the integration's error only."""
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    from helixrod._bvp import _stability
+    from helixrod._bvp._solve import stability_inputs
+
+    spring = helixrod.Rod(1.0, 1.0, 1 / 1.3, uhat=(0.0, 1.0, 0.3))
+    length = 3 * 2 * np.pi / np.hypot(1.0, 0.3)
+    curve = helixrod.force_extension(spring, length, np.linspace(0.01, 0.31, 11))
+    assert bool(jnp.all(curve.ok)) and int(curve.instability_index[-1]) == 8 and int(curve.instability_index[0]) == 0
+    last = jax.tree.map(lambda a: a[-1], curve.solutions)
+    start, end = helixrod.axial_ends(spring, length, force=0.31, moment=0.0)
+    tested = {}
+    for pieces in (16, 32, 64, 256):
+        single = helixrod.solve_boundary_value(spring, length, start=start, end=end, guess=last, stability_pieces=pieces)
+        tested[pieces] = (int(single.instability_index), float(single.stability_margin))
+    assert all(index == 8 for index, _ in tested.values()), tested
+    assert tested[16][1] == pytest.approx(tested[256][1], rel=0.1) and tested[64][1] == pytest.approx(tested[256][1], rel=0.01)
+
+    options = helixrod.BoundaryValueOptions()
+    N, M0, xs, frames = stability_inputs(last)[:4]
+    condition = type(end).condition(end)
+
+    def test():  # traced afresh at each call
+        return jax.jit(lambda: _stability.stability(spring, length, condition, N, M0, xs, frames, options)[:2])()
+
+    index, margin = test()
+    needed = _stability.sub_pieces_needed
+    try:
+        _stability.sub_pieces_needed = lambda *args: 2 * needed(*args)
+        doubled = test()
+    finally:
+        _stability.sub_pieces_needed = needed
+    assert int(index) == int(doubled[0]) == 8
+    assert float(margin) == pytest.approx(tested[16][1], rel=1e-9)
+    assert float(doubled[1]) == pytest.approx(float(margin), rel=1e-6)

@@ -517,6 +517,26 @@ def _shifted_tridiagonal_solve(d: Array, lower: Array, upper: Array, b: Array, p
 _MAX_BISECTIONS = 256
 
 
+def negative_count(S: ArrayLike) -> Array:
+    """The number of negative eigenvalues of a small symmetric matrix, by Sylvester's law of
+    inertia: the signs of the pivots of its symmetric elimination (largest remaining diagonal
+    first; pure arithmetic, no LAPACK call)."""
+    S = jnp.asarray(S)
+    size = S.shape[-1]
+    rows = jnp.arange(size)
+
+    def eliminate(_, carry):
+        S, remaining, count = carry
+        p = jnp.argmax(jnp.where(remaining, jnp.abs(jnp.diagonal(S)), -1.0))
+        column = S[:, p]
+        pivot = column[p]
+        S = S - jnp.outer(column, column) / jnp.where(pivot == 0, 1.0, pivot)
+        return S, remaining & (rows != p), count + (pivot < 0)
+
+    # A loop, not unrolled: one copy of the elimination in the program.
+    return jax.lax.fori_loop(0, size, eliminate, (S, jnp.ones(size, bool), jnp.zeros((), jnp.int32)))[2]
+
+
 def lowest_eigenpair(A: ArrayLike, shift: ArrayLike, vector_only_below: bool = False) -> tuple[Array, Array, Array]:
     """(number of eigenvalues below `shift`, the lowest eigenvalue, a unit eigenvector of it)
     of one symmetric matrix `A` `(n, n)`, without its full eigendecomposition.

@@ -63,13 +63,13 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._compile import committed_placement, compile_ahead, filter_jit, jit, leaf_shapes, once_per_signature
 from .._equilibria import helix_equilibria
-from .._misc import check_integer, finite_scalar, float_dtype, is_concrete, solve_small
+from .._misc import check_integer, finite_scalar, float_dtype, is_concrete, negative_count, solve_small
 from .._lie import hat, se3_exp, so3_exp
 from .._progress import ProgressArgument, batch_size, check_progress, progress_bar, scan_in_batches
 from .._rod import check_one_rod, check_quadratic_rod
 from ._ends import CLAMPED, end_condition
 from ._options import check_test_pieces
-from ._stability import EXTENSIBILITY, PIECE_RESOLUTION, assess, piece_hessian, stiffness_range
+from ._stability import EXTENSIBILITY, assess, piece_hessian, resolves, stiffness_range
 
 
 class StabilityAtlas(eqx.Module):
@@ -222,26 +222,6 @@ def _body_transfer(rod, n, m, s, exponential=None):
     return _with_extensibility(rod, T, s)
 
 
-def _negative_count(S):
-    """The number of negative eigenvalues of a small symmetric matrix, by Sylvester's law of
-    inertia: the signs of the pivots of its symmetric elimination (largest remaining diagonal
-    first; pure arithmetic, no LAPACK call)."""
-    size = S.shape[-1]
-    rows = jnp.arange(size)
-
-    def eliminate(_, carry):
-        S, remaining, count = carry
-        p = jnp.argmax(jnp.where(remaining, jnp.abs(jnp.diagonal(S)), -1.0))
-        column = S[:, p]
-        pivot = column[p]
-        S = S - jnp.outer(column, column) / jnp.where(pivot == 0, 1.0, pivot)
-        return S, remaining & (rows != p), count + (pivot < 0)
-
-    # A loop, not unrolled: one copy of the elimination in the program (it is traced twice,
-    # vmapped over every helix).
-    return jax.lax.fori_loop(0, size, eliminate, (S, jnp.ones(size, bool), jnp.zeros((), jnp.int32)))[2]
-
-
 def _node_blocks(transfer, scale):
     """The blocks (H_aa, H_ab, H_bb) of the Hessian of a piece with body `transfer` matrix
     (`_body_transfer`) in its two nodes' body variations (`piece_hessian`; the symmetric part,
@@ -275,8 +255,7 @@ def _conjugate_point(rod, n, m, max_length, bisections: int):
     at the nodes; its start wrench is the mode, its reaction on the end clamp the left null
     vector $\\ell$ of $B$ (module docstring)."""
     step = max_length / CRITICAL_SAMPLES
-    k_min = stiffness_range(rod)[0]
-    resolved = step * (jnp.sqrt(jnp.linalg.norm(n) / k_min) + jnp.linalg.norm(m) / k_min) <= PIECE_RESOLUTION
+    resolved = resolves(rod, step, n, jnp.linalg.norm(m))
     A = _body_variation_matrix(rod, n, m)
 
     def transfer(s, exponential=None):
@@ -288,7 +267,7 @@ def _conjugate_point(rod, n, m, max_length, bisections: int):
 
     def sample(G, _):
         S = node - G  # the Schur complement at node j: clamped length (j + 1) step
-        return Q.T @ solve_small(S, Q), (_negative_count(S), S)
+        return Q.T @ solve_small(S, Q), (negative_count(S), S)
 
     _, (counts, schur) = jax.lax.scan(sample, jnp.zeros((6, 6), n.dtype), None, length=CRITICAL_SAMPLES - 1)
     changed = counts > 0
@@ -308,7 +287,7 @@ def _conjugate_point(rod, n, m, max_length, bisections: int):
         lo, hi, exponential_lo = bracket
         mid = 0.5 * (lo + hi)
         exponential_mid = exponential_lo @ half
-        before = _negative_count(last_schur(transfer(mid, exponential_mid))) == 0
+        before = negative_count(last_schur(transfer(mid, exponential_mid))) == 0
         return (jnp.where(before, mid, lo), jnp.where(before, hi, mid), jnp.where(before, exponential_mid, exponential_lo)), None
 
     start = (jnp.zeros((), n.dtype), step, jnp.eye(12, dtype=n.dtype))
@@ -385,7 +364,8 @@ def _clamped_helix_stability(rod, n, m, length, pieces: int):
     at the origin with identity frame: the test is invariant under rigid motions, and the
     lab wrench at the start is the body one)."""
     transfers, N, end_position = uniform_transfers(rod, n, m, length, pieces)
-    index, margin, _ = assess(rod, length, end_condition(CLAMPED), N, transfers, end_position, jnp.linalg.norm(m))
+    resolved = resolves(rod, length / pieces, N, jnp.linalg.norm(m))
+    index, margin, _ = assess(rod, length, end_condition(CLAMPED), N, jax.vmap(piece_hessian)(transfers), end_position, resolved)
     return index, margin
 
 

@@ -50,10 +50,8 @@ from ._solve import (
     BoundaryValueSolution,
     fit_guess,
     parse_guess,
-    compile_solve_ahead,
     resolved_stability,
     solve,
-    solve_with_warm_start,
     stability_at_points,
     stability_inputs,
     test_pieces_ahead,
@@ -317,10 +315,12 @@ def _solve_from(rod, length, kind, start, v_from, v, guess, retry, options: Boun
     return replaced(sol, result=result, num_steps=steps), guess, reached
 
 
-def _continuation_points(rod, length, kind, values, options: BoundaryValueOptions, carry):
-    """Continuation mode: the points in order, each warm-started from the last converged
-    state (`lax.scan` from `carry`; in substeps where one step does not converge,
-    `_solve_from`); returns the carry after the last point and the outputs."""
+def _continuation_points(rod, length, kind, values, count, options: BoundaryValueOptions, carry):
+    """Continuation mode: the first `count` points in order, each warm-started from the last
+    converged state (a loop from `carry`; in substeps where one step does not converge,
+    `_solve_from`); returns the carry after the last and the outputs (zeros beyond
+    `count`).  `count` is traced: one program solves a curve's points and, in its first
+    slot, a bisection's single trials (`_first_loss_of_stability`)."""
     start, _, _ = _curve_setup(rod, length)
     index = jnp.asarray(CONTROL_INDEX)[kind]
 
@@ -334,7 +334,14 @@ def _continuation_points(rod, length, kind, values, options: BoundaryValueOption
         hint = jnp.where(sol.ok, obs[3], hint)
         return (guess, bulk_guess, hint, v_from, sol.ok), (obs, bulk_obs, sol, bulk.ok & sol.valid_input)
 
-    return jax.lax.scan(step, carry, values)
+    blank = jax.tree.map(lambda a: jnp.zeros(values.shape[:1] + a.shape, a.dtype), jax.eval_shape(step, carry, values[0])[1])
+
+    def point(i, state):
+        carry, outs = state
+        carry, out = step(carry, values[i])
+        return carry, jax.tree.map(lambda o, v: o.at[i].set(v), outs, out)
+
+    return jax.lax.fori_loop(0, count, point, (carry, blank))
 
 
 # A curve is solved by these programs: its points in independent mode, or in continuation
@@ -360,7 +367,12 @@ def _curve(rod, length, kind, values, options: BoundaryValueOptions, mode: str, 
     if mode == "independent":
         return _independent(rod, length, kind, values, hints, options, with_bulk, guess)
     carry = _continuation_first(rod, length, kind, values, options, guess)
-    return _continuation(rod, length, kind, values, options, carry)[1]
+    return _continuation(rod, length, kind, values, _count(values), options, carry)[1]
+
+
+def _count(values):
+    """The number of points of `values` as the programs' traced count (`_continuation_points`)."""
+    return np.int32(values.shape[0])
 
 
 def _point_ends(rod, length, kind, values) -> EndCondition:
@@ -368,10 +380,11 @@ def _point_ends(rod, length, kind, values) -> EndCondition:
     return jax.vmap(lambda v: axial_end_condition(rod, length, kind, v))(values)
 
 
-def _stability_of_points(rod, length, kind, values, N, M0, xs, frames, end_frames, result, options: BoundaryValueOptions):
-    """The stability test of each point's solution (its `N`, `M0`, nodes, end frame and
-    `result`) at its controls `values` `(n, 4)`."""
-    return stability_at_points(rod, length, _point_ends(rod, length, kind, values), N, M0, xs, frames, end_frames, result, options)
+def _stability_of_points(rod, length, kind, values, N, M0, xs, frames, end_frames, result, count, options: BoundaryValueOptions):
+    """The stability test of the first `count` points' solutions (their `N`, `M0`, nodes,
+    end frame and `result`) at their controls `values` `(n, 4)` (`stability_at_points`)."""
+    ends = _point_ends(rod, length, kind, values)
+    return stability_at_points(rod, length, ends, N, M0, xs, frames, end_frames, result, count, options)
 
 
 # A program of its own: a curve's solves (whose continuation the test does not steer) and
@@ -439,7 +452,8 @@ def _tested(rod, length, kind, values, sols: BoundaryValueSolution, options: Bou
     pieces (untested, as solved, where that is 0)."""
     if options.stability_pieces == 0:
         return sols
-    return with_stability(sols, _points_stability(rod, length, kind, values, *stability_inputs(sols), options), options.stability_pieces)
+    tested = _points_stability(rod, length, kind, values, *stability_inputs(sols), _count(values), options)
+    return with_stability(sols, tested, options.stability_pieces)
 
 
 def _curve_signature(rod, length, kind, values, options, mode, hints, with_bulk, guess):
@@ -463,12 +477,12 @@ def _compile_side_by_side(rod, length, kind, values, options, mode, hints, with_
         solved = compile_ahead(_independent, rod, length, kind, values, hints, options, with_bulk, guess)
     else:
         carry = _continuation_carry(values.dtype, options.segments, committed_placement((rod, length, kind, values, options, guess)))
-        solved = compile_ahead(_continuation, rod, length, kind, values, options, carry)
+        solved = compile_ahead(_continuation, rod, length, kind, values, _count(values), options, carry)
         solved = None if solved is None else solved[1]
     if solved is None:  # nothing compiles beside the call (traced, one core)
         return False
     if options.stability_pieces > 0:
-        compile_ahead(_points_stability, rod, length, kind, values, *stability_inputs(solved[2]), options)
+        compile_ahead(_points_stability, rod, length, kind, values, *stability_inputs(solved[2]), _count(values), options)
     return True
 
 
@@ -489,7 +503,7 @@ def _curve_in_batches(rod, length, kind, values, options, mode, hints, with_bulk
     carry = _continuation_first(rod, length, kind, values, options, guess)
 
     def solve_batch(carry, batch):
-        carry, out = _continuation(rod, length, kind, batch, options, carry)
+        carry, out = _continuation(rod, length, kind, batch, _count(batch), options, carry)
         return carry, tested(batch, out)
 
     return scan_in_batches(solve_batch, carry, values, n, size, report)[1]
@@ -620,6 +634,8 @@ def _response(
         )
     n = values.shape[0]
     with progress_bar(owner, n, progress, owner=owner, auto=concrete and n > 1) as report:
+        # The points of one call of the curve's programs, which its bisection calls again.
+        size = batch_size(n) if report.shown else n
         if report.shown:
             obs, bulk_obs, sols, bulk_ok = _curve_in_batches(
                 rod, length, kind, values, options, mode, hints, bool(bulk), guess, report
@@ -630,8 +646,6 @@ def _response(
             obs, bulk_obs, sols, bulk_ok = _curve(rod, length, kind, values, options, mode, hints, bool(bulk), guess)
             sols = _tested(rod, length, kind, values, sols, options)
     if concrete:
-        if mode == "continuation":
-            _bisection_ahead(rod, length, kind, values, sols, options)
         sols = _resolved(rod, length, kind, values, sols, options)
     obs, sols = _turns_counted(kind, values, obs, sols, concrete)
     curve = ResponseCurve(
@@ -649,7 +663,7 @@ def _response(
         critical_kind="none",
     )
     if is_concrete(curve) and mode == "continuation":
-        critical, kind = _first_loss_of_stability(rod, length, kind, values, swept, sols, options)
+        critical, kind = _first_loss_of_stability(rod, length, kind, values, swept, sols, options, size)
         curve = eqx.tree_at(lambda c: c.critical, curve, jnp.asarray(critical, values.dtype))
         curve = dataclasses.replace(curve, critical_kind=kind)
     return raise_if_failed(curve, curve.result, owner) if throw else curve
@@ -679,30 +693,32 @@ def _losses_of_stability(sols: BoundaryValueSolution, values) -> tuple[np.ndarra
     return failed, np.flatnonzero(stable[:-1] & (unstable[1:] | failed[1:]))
 
 
-def _bisection_ahead(rod, length, kind, values, sols: BoundaryValueSolution, options: BoundaryValueOptions) -> None:
-    """Where a continuation curve loses its stability (a stable point followed by an
-    unstable or a failed one, tested on `options.stability_pieces` pieces, before finer
-    tests resolve the points they did not: those may hide more, whose bisection compiles
-    its solve then): start compiling the trial solve of `_first_loss_of_stability` beside
-    the finer tests (`compile_solve_ahead`).  The first curve of a pulled spring (3 turns,
-    forces 0.01-0.5, a branch point near 0.09) compiled that solve after the finer tests,
-    one after the other."""
-    if options.stability_pieces == 0:
-        return
-    host, host_values = jax.device_get(sols), np.asarray(values)
-    candidates = _losses_of_stability(host, host_values)[1]
-    if candidates.size:
-        i = int(candidates[0])
-        good = _point(host, i)
-        end = _end_of_point(rod, length, kind, host_values[i])
-        compile_solve_ahead(rod, length, unloaded_clamp(rod), end, good.warm_start(), options)
+def _trial(rod, length, kind, v, good, v_good, size: int, options: BoundaryValueOptions):
+    """A bisection's trial: the solution at controls `v`, continued from the concrete
+    solution `good` at `v_good` (`_solve_from`), with its stability resolved as the curve's
+    points' is -- by the curve's own programs, in the first of their `size` slots (no
+    program of one point to compile at the first loss of stability of a first curve).
+    Returned on the host."""
+    values = np.zeros((size, 4), v.dtype)
+    values[0] = v
+    bulk_guess = (np.asarray(rod.uhat, v.dtype), np.zeros((), v.dtype), np.zeros((), v.dtype))
+    carry = (good.warm_start(), bulk_guess, np.zeros((), v.dtype), np.asarray(v_good), np.bool_(True))
+    one = np.int32(1)
+    sols = _continuation(rod, length, kind, values, one, options, carry)[1][2]
+    if options.stability_pieces > 0:
+        tested = _points_stability(rod, length, kind, values, *stability_inputs(sols), one, options)
+        sols = with_stability(sols, tested, options.stability_pieces)
+    trial = _point(jax.device_get(sols), 0)
+    if int(trial.instability_index) < 0 and bool(succeeded(trial.result)):  # (rare: not resolved)
+        trial = jax.device_get(resolved_stability(rod, length, _end_of_point(rod, length, kind, v), trial, options))
+    return trial
 
 
-def _first_loss_of_stability(rod, length, kind, values, swept, sols, options):
+def _first_loss_of_stability(rod, length, kind, values, swept, sols, options, size: int):
     """(critical value of the swept control, kind) of the first loss of stability of a
     continuation curve -- a stable point followed by an unstable one, or by a failed one
-    where the branch ends at a fold -- by bisection: each trial solve starts from the
-    stable side (its stability resolved as the points' are, `resolved_stability`).  A
+    where the branch ends at a fold -- by bisection: each trial solve is continued from the
+    stable side (`_trial`, whose programs solved the curve in calls of `size` points).  A
     branch point if the last unstable trial converged next to the stable side, a fold if
     it did not converge or jumped away (no equilibrium nearby beyond it).  Points whose
     stability is not defined (index -1: an end loaded by a moment) lose none."""
@@ -710,7 +726,6 @@ def _first_loss_of_stability(rod, length, kind, values, swept, sols, options):
     sols, values = jax.device_get(sols), np.asarray(values)
     failed, candidates = _losses_of_stability(sols, values)
     column = AXIAL_OBSERVABLES.index(swept)
-    start = unloaded_clamp(rod)
     distance = lambda s, t: float(np.linalg.norm(np.concatenate([s.force - t.force, s.moment0 - t.moment0])))  # noqa: E731
     # Every stable -> unstable step, and the first few stable -> failed ones.
     candidates = candidates[~failed[candidates + 1] | (np.cumsum(failed[candidates + 1]) <= FOLD_CANDIDATES)]
@@ -720,9 +735,7 @@ def _first_loss_of_stability(rod, length, kind, values, swept, sols, options):
         first = distance(good, bad)
         for _ in range(CRITICAL_BISECTIONS):
             mid = 0.5 * (a + b)
-            end = _end_of_point(rod, length, kind, mid)
-            solved = solve_with_warm_start(rod, length, start, end, good.warm_start(), None, options)
-            trial = jax.device_get(resolved_stability(rod, length, end, solved, options))
+            trial = _trial(rod, length, kind, mid, good, a, size, options)
             if bool(succeeded(trial.result)) and float(trial.stability_margin) > 0:
                 a, good = mid, trial
             else:

@@ -197,16 +197,24 @@ def with_stability(sol, tested, pieces: int):
     )
 
 
-def stability_at_points(rod, length, ends: EndCondition, N, M0, xs, frames, end_frames, result, options: BoundaryValueOptions):
+def stability_at_points(rod, length, ends: EndCondition, N, M0, xs, frames, end_frames, result, count, options: BoundaryValueOptions):
     """The stability test of many solutions of one rod (`restability`'s, one after another
-    along the leading axis of `ends` and the solutions' arrays): `(index, margin, push,
-    rotation)` per point.  A loop (`lax.map`), not `vmap`: batched, the test ran no faster (a 50-point
-    curve's 37-40 ms either way) and its program traced in 0.75 s instead of 0.30 s and
-    compiled in 2.5 s of CPU instead of 1.8 s; the same results to 1e-9."""
-    def one(point):
-        return _stability_where_solved(rod, length, *point, options)
+    along the leading axis of `ends` and the solutions' arrays) -- of the first `count`
+    (traced: one program tests a curve's points and, in its first slot, a bisection's single
+    trials), the others left undefined (index -1, NaN margin and rotation, no push):
+    `(index, margin, push, rotation)` per point.  A loop, not `vmap`: batched, the test ran
+    no faster (a 50-point curve's 37-40 ms either way) and its program traced in 0.75 s
+    instead of 0.30 s and compiled in 2.5 s of CPU instead of 1.8 s; the same results to
+    1e-9."""
+    points = (ends, N, M0, xs, frames, end_frames, result)
+    n, dtype = N.shape[0], N.dtype
+    untested = (jnp.full(n, -1, jnp.int32), jnp.full(n, jnp.nan, dtype), jnp.zeros((n, 6), dtype), jnp.full(n, jnp.nan, dtype))
 
-    return jax.lax.map(one, (ends, N, M0, xs, frames, end_frames, result))
+    def one(i, tested):
+        point = jax.tree.map(lambda a: a[i], points)
+        return jax.tree.map(lambda t, v: t.at[i].set(v), tested, _stability_where_solved(rod, length, *point, options))
+
+    return jax.lax.fori_loop(0, count, one, untested)
 
 
 #: `stability_of_nodes(rod, length, end, N, M0, xs, frames, end_frame, result, options)`:
@@ -247,13 +255,6 @@ def solve_with_warm_start(rod, length, start: Clamped, end: EndCondition, guess,
         guess = as_warm_start(rod, length, start, end, guess, options, guess_kind)
     sol = solve(rod, length, start, end, guess, saveat, options, guess_kind, test_stability=False)
     return restability(rod, length, end, sol, options) if options.stability_pieces > 0 else sol
-
-
-def compile_solve_ahead(rod, length, start: Clamped, end: EndCondition, guess: WarmStart, options: BoundaryValueOptions) -> None:
-    """Start compiling what `solve_with_warm_start` from the warm start `guess` will run
-    (the solve and its stability test, `_compile_side_by_side`), for a caller that knows
-    it will make such solves and has other programs to compile meanwhile."""
-    _compile_side_by_side(rod, length, start, end, guess, None, options, "helix", False)
 
 
 def _solve_signature(rod, length, start, end, guess, saveat, options, guess_kind, converts: bool):
@@ -499,9 +500,8 @@ def solve_boundary_value(
     if auto:
         if not is_concrete(rod, length, start, end, guess):
             raise ValueError(f"{owner}: segments='auto' needs concrete inputs (not under jax.jit or vmap)")
-        segments_needed, _, (n0, m0) = needed_segments(rod, length, start, end, guess, guess_kind)
-        pieces = options.stability_pieces and max(options.stability_pieces, stability_pieces_for(rod, length, n0, m0))
-        options = dataclasses.replace(options, segments=segments_needed, stability_pieces=min(pieces, MAX_STABILITY_PIECES))
+        segments_needed = needed_segments(rod, length, start, end, guess, guess_kind)[0]
+        options = dataclasses.replace(options, segments=segments_needed)
     guess = fit_guess(guess, options.segments, start)
     sol = solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind)
     # One program made every field: two of them say whether they are concrete (the residual

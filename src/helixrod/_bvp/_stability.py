@@ -43,11 +43,21 @@ moment**: a dead moment is not conservative on
 $SO(3)$, so the stability of an end loaded by a moment is not defined here (index $-1$,
 margin NaN).
 
-Each piece must be free of conjugate points.  That holds when its length $h$ is short against
-the scales of the wrench, $h\\,(\\sqrt{|N|/K_{min}} + \\max |m|/K_{min}) \\le 1$ (the first
-conjugate point of a clamped piece is at $2\\pi$ in the first of these and at $\\approx 9$ in the
-second); where it does not hold the result is flagged unresolved (index $-1$, margin NaN) and
-`solve_boundary_value` retries with more pieces.
+Each piece must be free of conjugate points, and its Jacobi fields well conditioned.  Both
+hold when its length $h$ is short against the scales of the wrench,
+$h\\,(\\sqrt{|N|/K_{min}} + \\max |m|/K_{min}) \\le 1$ (the first conjugate point of a clamped
+piece is at $2\\pi$ in the first of these and at $\\approx 9$ in the second).  Where a piece is
+longer than that for its wrench it is integrated as a chain of equal sub-pieces that are not
+(`sub_pieces_needed`), and the chain's inner nodes are eliminated as it goes (`condensed`):
+the Schur complement onto the piece's two nodes is the piece's exact Hessian, and by
+Haynsworth's inertia additivity the rod's index is that of the assembled Hessian plus the
+negative eigenvalues of the eliminated blocks -- Morse's count on the finer pieces, with the
+margin and the direction of the coarser ones.  A chain whose eliminated blocks are not all
+positive (a conjugate point inside one piece: a state far from stable) or that would need
+more than `MAX_SUB_PIECES` sub-pieces is flagged unresolved (index $-1$, margin NaN), and
+`solve_boundary_value` retries with more pieces.  Before the chains, a pulled 3-turn spring
+needed tests on 32, 64 and 128 pieces along its curve, a program each: the first curve
+across its critical force took 11.0 s on 2 cores.
 """
 
 from __future__ import annotations
@@ -57,9 +67,9 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._lie import hat
-from .._misc import inverse_small, lowest_eigenpair, no_gradient, solve_small, symmetric_eigenvalue_min
+from .._misc import inverse_small, lowest_eigenpair, negative_count, no_gradient, solve_small, symmetric_eigenvalue_min
 from ._ends import LOADED, TWEEZER, EndCondition
-from ._rotation import counted_rotation
+from ._rotation import RotationCount, counted_rotation, start_count
 from ._options import BoundaryValueOptions
 from ._shooting import per_piece
 from ._variations import PieceVariations, piece_variations, variation_steps
@@ -82,6 +92,10 @@ UNSTABLE_STEP = 0.3
 
 #: The largest dimensionless piece length $h(\\sqrt{|N|/K_{min}} + \\max|m|/K_{min})$ trusted.
 PIECE_RESOLUTION = 1.0
+
+#: The most sub-pieces of one piece of the test (`stability`): 16 pieces of 16 resolve as
+#: much as 256 pieces did.
+MAX_SUB_PIECES = 16
 
 
 def stiffness_range(rod) -> tuple[Array, Array]:
@@ -122,15 +136,15 @@ def piece_hessian(T) -> Float[Array, "12 12"]:
     return jnp.block([[B_inv @ A, -B_inv], [C - D @ B_inv @ A, D @ B_inv]])
 
 
-def second_variation(rod, length, end: EndCondition, N, end_position, transfers, end_frame=None):
+def second_variation(rod, length, end: EndCondition, N, end_position, hessians, end_frame=None):
     """The rod's Hessian in its free node variations, assembled from the pieces' `(p, 12,
-    12)` transfer matrices, with the load's (`end_frame`: the end's, where a `Loaded` end's
+    12)` Hessians (`piece_hessian`, or `chained_hessian`), with the load's (`end_frame`: the end's, where a `Loaded` end's
     hook needs it); scaled to the dimensionless form of the module docstring and
     symmetrised.  `(6p, 6p)`; the fixed slots of the last node are decoupled
     with a large diagonal (their eigenvalues lie far above the soft ones).  Also returns
     the mask of free slots."""
-    p = transfers.shape[0]
-    pieces = jax.vmap(piece_hessian)(transfers).reshape(p, 2, 6, 2, 6)
+    p = hessians.shape[0]
+    pieces = hessians.reshape(p, 2, 6, 2, 6)
     # Block-tridiagonal in the p + 1 nodes: piece j adds its Hessian to nodes (j, j + 1).
     # (Placed by index: built as sums of Kronecker-like products with identity matrices it
     # cost ~2x as long, measured on its own at 16 pieces.)
@@ -160,53 +174,121 @@ def second_variation(rod, length, end: EndCondition, N, end_position, transfers,
     return H, free
 
 
+def condensed(S, P):
+    """The Hessian `(12, 12)` of a chain of pieces in its end nodes (a, d) from its Hessian in
+    (a, c), `S`, and the Hessian of one more piece in (c, d), `P`, with node c eliminated:
+    the Schur complement of c's block $\\Pi = S_{cc} + P_{cc}$ (symmetrised: the Lie-group
+    connection terms cancel at a node in equilibrium); and the number of $\\Pi$'s negative
+    eigenvalues.  By Haynsworth's inertia additivity the chain's index is the sum of those
+    counts over its eliminated nodes plus the index of the result."""
+    pivot = S[6:, 6:] + P[:6, :6]
+    pivot = 0.5 * (pivot + pivot.T)
+    to_pivot = jnp.concatenate([S[:6, 6:], P[6:, :6]], axis=0)  # (a, d) rows, c columns
+    from_pivot = jnp.concatenate([S[6:, :6], P[:6, 6:]], axis=1)
+    zero = jnp.zeros((6, 6), S.dtype)
+    ends = jnp.block([[S[:6, :6], zero], [zero, P[6:, 6:]]])
+    return ends - to_pivot @ solve_small(pivot, from_pivot), negative_count(pivot)
+
+
+def sub_pieces_needed(h, force_rate, start_moment, force, k_min) -> Array:
+    """The sub-pieces a piece of length `h` needs to resolve its wrench
+    (`PIECE_RESOLUTION`): along it $|m(s)| \\le |m_a| + |N|\\,s$ (inextensible), so
+    `start_moment` $|m_a|$ and the lab `force` $|N|$ bound its moments; `force_rate`
+    $\\sqrt{|N|/K_{min}}$."""
+    rate = force_rate + (start_moment + force * h) / k_min
+    return jnp.maximum(jnp.ceil(h * rate / PIECE_RESOLUTION), 1.0)
+
+
 def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: BoundaryValueOptions):
     """(instability_index, stability_margin, unstable_direction, rotation) of the
     equilibrium with lab force `N`, lab moment `M0` at the start and shooting nodes `xs`
     `(k, 3)`, `frames` `(k, 3, 3)`, on `options.stability_pieces` pieces (rounded up to a
-    multiple of k).  Index -1 and NaN margin where the stability is not defined (a `Loaded`
-    end with an applied moment), the pieces do not resolve the wrench, or the integration
-    failed.  `unstable_direction` `(6,)`: the change of the lab start wrench (N, M0) that
-    moves the rod along its most unstable direction (zero unless unstable).  `rotation`:
-    the end's total rotation about $e_z$ (`_rotation.py`) as counted on the pieces' way, to
-    their integration's accuracy (NaN where not counted; `exact_rotation` makes it exact).
-    No derivatives."""
+    multiple of k).  Each piece is integrated as a chain of as many equal sub-pieces as its
+    wrench needs (`sub_pieces_needed`, at most `MAX_SUB_PIECES`), whose inner nodes are
+    eliminated as it goes (`condensed`): one program resolves every load.  Index -1 and NaN
+    margin where the stability is not defined (a `Loaded` end with an applied moment), a
+    piece would need more sub-pieces or holds a conjugate point of its own (an inner node's
+    negative count: a state far from stable, which more pieces resolve), or the
+    integration failed.  `unstable_direction` `(6,)`: the change of the lab start wrench
+    (N, M0) that moves the rod along its most unstable direction (zero unless unstable).
+    `rotation`: the end's total rotation about $e_z$ (`_rotation.py`) as counted on the
+    pieces' way, to their integration's accuracy (NaN where not counted; `exact_rotation`
+    makes it exact).  No derivatives."""
     rod, length, end, N, M0, xs, frames = no_gradient((rod, length, end, N, M0, xs, frames))
     k = xs.shape[0]
     q = -(-options.stability_pieces // k)
     p, h = k * q, length / (k * q)
     x0 = xs[0]
-    compliance = EXTENSIBILITY * h**3 / stiffness_range(rod)[1]
+    k_min, k_mean = stiffness_range(rod)
+    force = jnp.linalg.norm(N)
+    force_rate = jnp.sqrt(force / k_min)
+    # Node positions over h: the pivots of the elimination balanced (a congruence).
+    weight = jnp.tile(jnp.concatenate([jnp.full(3, h), jnp.ones(3, N.dtype)]), 2)
 
-    def sub_piece(node, _):
-        # The pieces of one shooting piece in sequence: each starts where the last ended.
+    def hessian(frame, moment, piece, piece_length):
+        """The weighted Hessian of a piece, symmetrised (below)."""
+        H = piece_hessian(piece_transfer(frame, N, moment, piece, EXTENSIBILITY * piece_length**3 / k_mean))
+        H = weight[:, None] * H * weight[None, :]
+        return 0.5 * (H + H.T)
+
+    def chained_piece(node, _):
         x, frame = node
-        moment = M0 - jnp.cross(x - x0, N)
-        local = jnp.concatenate([frame.T @ N, frame.T @ moment])
-        steps = variation_steps(rod, local[:3], local[3:], h, options.max_ode_steps)
-        piece = piece_variations(rod, local[:3], local[3:], h, steps, frame)
-        end_node = (x + frame @ piece.position, frame @ piece.frame)
-        return end_node, (frame, moment, piece, jnp.linalg.norm(local[3:]), end_node)
+        needed = sub_pieces_needed(h, force_rate, jnp.linalg.norm(M0 - jnp.cross(x - x0, N)), force, k_min)
+        count = jnp.minimum(needed, MAX_SUB_PIECES).astype(jnp.int32)
+        sub_length = h / count
 
-    _, (starts, moments, pieces, start_moments, ends) = per_piece(
-        lambda i: jax.lax.scan(sub_piece, (xs[i], frames[i]), None, length=q), jnp.arange(k)
+        def chain(i, carry):
+            (x, frame), _, S, negatives, rotation = carry
+            moment = M0 - jnp.cross(x - x0, N)
+            local = jnp.concatenate([frame.T @ N, frame.T @ moment])
+            steps = variation_steps(rod, local[:3], local[3:], sub_length, options.max_ode_steps)
+            piece = piece_variations(rod, local[:3], local[3:], sub_length, steps, frame)
+
+            def eliminated():
+                # Symmetrised before the elimination, as the assembled Hessian is (a sum of
+                # the pieces'): the integration's small asymmetry of the axial blocks, whose
+                # tiny extensibility makes them huge, otherwise enters the Schur complements
+                # (measured: 6 unstable directions instead of 8 on a pulled spring, chains
+                # of 4 sub-pieces).
+                P = hessian(frame, moment, piece, sub_length)
+                return jax.lax.cond(i == 0, lambda: (P, jnp.zeros((), jnp.int32)), lambda: condensed(S, P))
+
+            # Branches, not both sides and a selection (except under `vmap`): most pieces are
+            # one sub-piece, whose Hessian is formed with the others' after the loop.
+            S, pivot_negatives = jax.lax.cond(count > 1, eliminated, lambda: (S, jnp.zeros((), jnp.int32)))
+            rotation = RotationCount(
+                piece.rotation.angle, rotation.total + piece.rotation.total,
+                jnp.maximum(rotation.largest, piece.rotation.largest), jnp.minimum(rotation.pole, piece.rotation.pole),
+            )
+            end_node = (x + frame @ piece.position, frame @ piece.frame)
+            # (The last sub-piece is kept: the only one where the piece is one.)
+            return end_node, (frame, moment, piece), S, negatives + pivot_negatives, rotation
+
+        local = jnp.concatenate([frame.T @ N, frame.T @ M0])
+        blank = jax.tree.map(jnp.zeros_like, jax.eval_shape(piece_variations, rod, local[:3], local[3:], h, 1, frame))
+        start = (node, (frame, M0, blank), jnp.zeros((12, 12), N.dtype), jnp.zeros((), jnp.int32), start_count(frame))
+        end_node, last, S, negatives, rotation = jax.lax.fori_loop(0, count, chain, start)
+        resolved = (needed <= MAX_SUB_PIECES) & (negatives == 0)
+        return end_node, (last, count, S, resolved, rotation, end_node)
+
+    _, (last, counts, chained, resolved, rotations, ends) = per_piece(
+        lambda i: jax.lax.scan(chained_piece, (xs[i], frames[i]), None, length=q), jnp.arange(k)
     )
-    # The transfer matrices of all pieces at once, outside the sequential loop.
     flat = lambda a: a.reshape((p,) + a.shape[2:])  # noqa: E731
-    starts, moments, pieces = flat(starts), flat(moments), jax.tree.map(flat, pieces)
-    transfers = jax.vmap(lambda frame, moment, piece: piece_transfer(frame, N, moment, piece, compliance))(starts, moments, pieces)
-    largest_moment = jnp.maximum(jnp.max(start_moments), jnp.max(jnp.linalg.norm(pieces.moment, axis=-1)))
+    # The pieces of one sub-piece (most): their Hessians all at once, outside the loop.
+    single = jax.vmap(lambda frame, moment, piece: hessian(frame, moment, piece, h))(*jax.tree.map(flat, last))
+    hessians = jnp.where(flat(counts)[:, None, None] > 1, flat(chained), single) / (weight[:, None] * weight[None, :])[None]
     end_position, end_frame = ends[0][-1, -1], ends[1][-1, -1]
-    return (*assess(rod, length, end, N, transfers, end_position, largest_moment, end_frame), counted_rotation(pieces.rotation))
+    tested = assess(rod, length, end, N, hessians, end_position, jnp.all(resolved), end_frame)
+    return (*tested, counted_rotation(rotations))
 
 
-def assess(rod, length, end: EndCondition, N, transfers, end_position, largest_moment, end_frame=None):
-    """(instability_index, stability_margin, unstable_direction) from the pieces' transfer
-    matrices `(p, 12, 12)` (as `stability`); `largest_moment`: the largest moment along the
-    rod (whether the pieces resolve the wrench); `end_frame` as `second_variation`."""
-    p = transfers.shape[0]
-    h = length / p
-    H, free = second_variation(rod, length, end, N, end_position, transfers, end_frame)
+def assess(rod, length, end: EndCondition, N, hessians, end_position, resolved, end_frame=None):
+    """(instability_index, stability_margin, unstable_direction) from the pieces' Hessians
+    `(p, 12, 12)` (as `stability`); `resolved`: whether the pieces resolve the wrench
+    (`resolves`); `end_frame` as `second_variation`."""
+    p = hessians.shape[0]
+    H, free = second_variation(rod, length, end, N, end_position, hessians, end_frame)
     defined_H = jnp.all(jnp.isfinite(H))
     # Only the bottom of the spectrum is needed: the count below the neutral band, the
     # lowest eigenvalue and, where unstable, its vector (NaN-free input: a failed
@@ -214,15 +296,22 @@ def assess(rod, length, end: EndCondition, N, transfers, end_position, largest_m
     H = jnp.where(defined_H, H, jnp.eye(H.shape[0], dtype=H.dtype))
     index, margin, vector = lowest_eigenpair(H, -NEUTRAL * (p / 16) ** 2, vector_only_below=True)
     # The most unstable direction as the start-wrench change that produces it to first
-    # order (the first free node's variation through the first piece's B^{-1}), scaled to a
+    # order (the first free node's variation through the first piece's B^{-1}, which is minus
+    # its Hessian's coupling of its two nodes), scaled to a
     # largest node rotation (or displacement / L) of `UNSTABLE_STEP`.
     mode = jnp.where(free, vector, 0.0).reshape(p, 6) * jnp.concatenate([jnp.full(3, length), jnp.ones(3)])[None, :]
     size = jnp.maximum(jnp.max(jnp.abs(mode[:, 3:])), jnp.max(jnp.abs(mode[:, :3])) / length)
     mode = UNSTABLE_STEP * mode / jnp.where(size > 0, size, 1.0)
-    push = solve_small(transfers[0, :6, 6:], mode[0])
-    k_min = stiffness_range(rod)[0]
-    resolved = h * (jnp.sqrt(jnp.linalg.norm(N) / k_min) + largest_moment / k_min) <= PIECE_RESOLUTION
+    push = -hessians[0, :6, 6:] @ mode[0]
     moment_free = ~((end.kind == LOADED) & (jnp.linalg.norm(end.moment) > 0))
     defined = moment_free & resolved & defined_H
     push = jnp.where(defined & (index > 0) & jnp.all(jnp.isfinite(push)), push, 0.0)
     return jnp.where(defined, index, -1), jnp.where(defined, margin, jnp.nan), push
+
+
+def resolves(rod, h, N, largest_moment) -> Array:
+    """Whether pieces of length `h` resolve the wrench of lab force `N` and largest moment
+    `largest_moment` along them: $h\\,(\\sqrt{|N|/K_{min}} + \\max|m|/K_{min}) \\le$
+    `PIECE_RESOLUTION`."""
+    k_min = stiffness_range(rod)[0]
+    return h * (jnp.sqrt(jnp.linalg.norm(N) / k_min) + largest_moment / k_min) <= PIECE_RESOLUTION

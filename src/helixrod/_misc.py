@@ -517,15 +517,18 @@ def _shifted_tridiagonal_solve(d: Array, lower: Array, upper: Array, b: Array, p
 _MAX_BISECTIONS = 256
 
 
-def negative_count(S: ArrayLike) -> Array:
-    """The number of negative eigenvalues of a small symmetric matrix, by Sylvester's law of
-    inertia: the signs of the pivots of its symmetric elimination (largest remaining diagonal
-    first; pure arithmetic, no LAPACK call)."""
-    S = jnp.asarray(S)
+def symmetric_elimination(S: ArrayLike, eliminate: np.ndarray) -> tuple[Array, Array]:
+    """The symmetric elimination of the rows and columns `eliminate` (a NumPy mask) of a small
+    symmetric matrix `S`: `S` with the Schur complement of their block in the others' (their
+    own rows and columns left zero), and the number of that block's negative eigenvalues, by
+    Sylvester's law of inertia (the signs of its pivots; largest remaining diagonal first;
+    pure arithmetic, no LAPACK call).  A zero pivot (a singular block) is skipped."""
+    steps = int(np.count_nonzero(eliminate))  # (a concrete mask)
+    S, eliminate = jnp.asarray(S), jnp.asarray(eliminate)
     size = S.shape[-1]
     rows = jnp.arange(size)
 
-    def eliminate(_, carry):
+    def step(_, carry):
         S, remaining, count = carry
         p = jnp.argmax(jnp.where(remaining, jnp.abs(jnp.diagonal(S)), -1.0))
         column = S[:, p]
@@ -534,7 +537,15 @@ def negative_count(S: ArrayLike) -> Array:
         return S, remaining & (rows != p), count + (pivot < 0)
 
     # A loop, not unrolled: one copy of the elimination in the program.
-    return jax.lax.fori_loop(0, size, eliminate, (S, jnp.ones(size, bool), jnp.zeros((), jnp.int32)))[2]
+    S, _, count = jax.lax.fori_loop(0, steps, step, (S, eliminate, jnp.zeros((), jnp.int32)))
+    return S, count
+
+
+def negative_count(S: ArrayLike) -> Array:
+    """The number of negative eigenvalues of a small symmetric matrix (`symmetric_elimination`
+    of all its rows)."""
+    S = jnp.asarray(S)
+    return symmetric_elimination(S, np.ones(S.shape[-1], bool))[1]
 
 
 def lowest_eigenpair(A: ArrayLike, shift: ArrayLike, vector_only_below: bool = False) -> tuple[Array, Array, Array]:

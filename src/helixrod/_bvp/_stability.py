@@ -64,10 +64,11 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from .._lie import hat
-from .._misc import inverse_small, lowest_eigenpair, negative_count, no_gradient, solve_small, symmetric_eigenvalue_min
+from .._misc import inverse_small, lowest_eigenpair, no_gradient, symmetric_elimination, symmetric_eigenvalue_min
 from ._ends import LOADED, TWEEZER, EndCondition
 from ._rotation import RotationCount, counted_rotation, start_count
 from ._options import BoundaryValueOptions
@@ -176,18 +177,17 @@ def second_variation(rod, length, end: EndCondition, N, end_position, hessians, 
 
 def condensed(S, P):
     """The Hessian `(12, 12)` of a chain of pieces in its end nodes (a, d) from its Hessian in
-    (a, c), `S`, and the Hessian of one more piece in (c, d), `P`, with node c eliminated:
-    the Schur complement of c's block $\\Pi = S_{cc} + P_{cc}$ (symmetrised: the Lie-group
-    connection terms cancel at a node in equilibrium); and the number of $\\Pi$'s negative
-    eigenvalues.  By Haynsworth's inertia additivity the chain's index is the sum of those
-    counts over its eliminated nodes plus the index of the result."""
-    pivot = S[6:, 6:] + P[:6, :6]
-    pivot = 0.5 * (pivot + pivot.T)
-    to_pivot = jnp.concatenate([S[:6, 6:], P[6:, :6]], axis=0)  # (a, d) rows, c columns
-    from_pivot = jnp.concatenate([S[6:, :6], P[:6, 6:]], axis=1)
-    zero = jnp.zeros((6, 6), S.dtype)
-    ends = jnp.block([[S[:6, :6], zero], [zero, P[6:, 6:]]])
-    return ends - to_pivot @ solve_small(pivot, from_pivot), negative_count(pivot)
+    (a, c), `S`, and the Hessian of one more piece in (c, d), `P` (both symmetric), with node
+    c eliminated: the Schur complement of c's block $S_{cc} + P_{cc}$; and the number of
+    that block's negative eigenvalues (`symmetric_elimination`).  By Haynsworth's inertia
+    additivity the chain's index is the sum of those counts over its eliminated nodes plus
+    the index of the result."""
+    whole = jnp.zeros((18, 18), S.dtype).at[:12, :12].add(S).at[6:, 6:].add(P)
+    node = np.zeros(18, bool)
+    node[6:12] = True
+    whole, negatives = symmetric_elimination(whole, node)
+    ends = np.flatnonzero(~node)
+    return whole[np.ix_(ends, ends)], negatives
 
 
 def sub_pieces_needed(h, force_rate, start_moment, force, k_min) -> Array:
@@ -226,7 +226,10 @@ def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: Bounda
     weight = jnp.tile(jnp.concatenate([jnp.full(3, h), jnp.ones(3, N.dtype)]), 2)
 
     def hessian(frame, moment, piece, piece_length):
-        """The weighted Hessian of a piece, symmetrised (below)."""
+        # Symmetrised before the elimination, as the assembled Hessian is (a sum of the
+        # pieces'): the integration's small asymmetry of the axial blocks, whose tiny
+        # extensibility makes them huge, otherwise enters the Schur complements (measured:
+        # 6 unstable directions instead of 8 on a pulled spring, chains of 4 sub-pieces).
         H = piece_hessian(piece_transfer(frame, N, moment, piece, EXTENSIBILITY * piece_length**3 / k_mean))
         H = weight[:, None] * H * weight[None, :]
         return 0.5 * (H + H.T)
@@ -238,46 +241,32 @@ def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: Bounda
         sub_length = h / count
 
         def chain(i, carry):
-            (x, frame), _, S, negatives, rotation = carry
+            (x, frame), S, negatives, rotation = carry
             moment = M0 - jnp.cross(x - x0, N)
             local = jnp.concatenate([frame.T @ N, frame.T @ moment])
             steps = variation_steps(rod, local[:3], local[3:], sub_length, options.max_ode_steps)
             piece = piece_variations(rod, local[:3], local[3:], sub_length, steps, frame)
-
-            def eliminated():
-                # Symmetrised before the elimination, as the assembled Hessian is (a sum of
-                # the pieces'): the integration's small asymmetry of the axial blocks, whose
-                # tiny extensibility makes them huge, otherwise enters the Schur complements
-                # (measured: 6 unstable directions instead of 8 on a pulled spring, chains
-                # of 4 sub-pieces).
-                P = hessian(frame, moment, piece, sub_length)
-                return jax.lax.cond(i == 0, lambda: (P, jnp.zeros((), jnp.int32)), lambda: condensed(S, P))
-
-            # Branches, not both sides and a selection (except under `vmap`): most pieces are
-            # one sub-piece, whose Hessian is formed with the others' after the loop.
-            S, pivot_negatives = jax.lax.cond(count > 1, eliminated, lambda: (S, jnp.zeros((), jnp.int32)))
+            P = hessian(frame, moment, piece, sub_length)
+            # The first sub-piece starts the chain (a branch: most pieces are one sub-piece).
+            # (Each Hessian formed here, not vmapped after the loop for the pieces of one
+            # sub-piece: that copy made the program 20 % larger, for ~0.05 ms a test.)
+            S, pivot_negatives = jax.lax.cond(i == 0, lambda: (P, jnp.zeros((), jnp.int32)), lambda: condensed(S, P))
             rotation = RotationCount(
                 piece.rotation.angle, rotation.total + piece.rotation.total,
                 jnp.maximum(rotation.largest, piece.rotation.largest), jnp.minimum(rotation.pole, piece.rotation.pole),
             )
-            end_node = (x + frame @ piece.position, frame @ piece.frame)
-            # (The last sub-piece is kept: the only one where the piece is one.)
-            return end_node, (frame, moment, piece), S, negatives + pivot_negatives, rotation
+            return (x + frame @ piece.position, frame @ piece.frame), S, negatives + pivot_negatives, rotation
 
-        local = jnp.concatenate([frame.T @ N, frame.T @ M0])
-        blank = jax.tree.map(jnp.zeros_like, jax.eval_shape(piece_variations, rod, local[:3], local[3:], h, 1, frame))
-        start = (node, (frame, M0, blank), jnp.zeros((12, 12), N.dtype), jnp.zeros((), jnp.int32), start_count(frame))
-        end_node, last, S, negatives, rotation = jax.lax.fori_loop(0, count, chain, start)
+        start = (node, jnp.zeros((12, 12), N.dtype), jnp.zeros((), jnp.int32), start_count(frame))
+        end_node, S, negatives, rotation = jax.lax.fori_loop(0, count, chain, start)
         resolved = (needed <= MAX_SUB_PIECES) & (negatives == 0)
-        return end_node, (last, count, S, resolved, rotation, end_node)
+        return end_node, (S, resolved, rotation, end_node)
 
-    _, (last, counts, chained, resolved, rotations, ends) = per_piece(
+    _, (hessians, resolved, rotations, ends) = per_piece(
         lambda i: jax.lax.scan(chained_piece, (xs[i], frames[i]), None, length=q), jnp.arange(k)
     )
     flat = lambda a: a.reshape((p,) + a.shape[2:])  # noqa: E731
-    # The pieces of one sub-piece (most): their Hessians all at once, outside the loop.
-    single = jax.vmap(lambda frame, moment, piece: hessian(frame, moment, piece, h))(*jax.tree.map(flat, last))
-    hessians = jnp.where(flat(counts)[:, None, None] > 1, flat(chained), single) / (weight[:, None] * weight[None, :])[None]
+    hessians = flat(hessians) / (weight[:, None] * weight[None, :])[None]
     end_position, end_frame = ends[0][-1, -1], ends[1][-1, -1]
     tested = assess(rod, length, end, N, hessians, end_position, jnp.all(resolved), end_frame)
     return (*tested, counted_rotation(rotations))

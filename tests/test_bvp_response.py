@@ -198,8 +198,8 @@ def test_rotation_response_agrees_with_force_extension():
     assert float(default.rotation) == pytest.approx(float(held[0]), abs=1e-9)
     np.testing.assert_allclose(default.force, single.force, atol=1e-8)
     # Its stability: on the curve's 16 pieces, each a chain of the sub-pieces its wrench asks
-    # (before, tested again on 64 pieces), as the single solve's is: the same unstable spring
-    # (a plectoneme is nearer).
+    # (before, 16 pieces did not resolve it: tested again on 64), as the single solve's (its
+    # wrench asks for no more than 16 pieces): the same unstable spring (a plectoneme is nearer).
     assert turned.solutions.stability_pieces == single.stability_pieces == DEFAULT_OPTIONS.stability_pieces
     assert int(turned.instability_index[0]) == int(single.instability_index) > 0
     np.testing.assert_allclose(turned.stability_margin[0], single.stability_margin, rtol=1e-6)

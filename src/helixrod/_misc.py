@@ -522,7 +522,10 @@ def symmetric_elimination(S: ArrayLike, eliminate: np.ndarray) -> tuple[Array, A
     symmetric matrix `S`: `S` with the Schur complement of their block in the others' (their
     own rows and columns left zero), and the number of that block's negative eigenvalues, by
     Sylvester's law of inertia (the signs of its pivots; largest remaining diagonal first;
-    pure arithmetic, no LAPACK call).  A zero pivot (a singular block) is skipped."""
+    pure arithmetic, no LAPACK call).  A zero pivot is skipped, its row left as it is: where
+    a block's remaining diagonal is all zero (singular, or indefinite as [[0, 1], [1, 0]])
+    the count misses its eigenvalues there and the complement is not its Schur complement --
+    never met by the stability test's node blocks, positive or flagged."""
     steps = int(np.count_nonzero(eliminate))  # (a concrete mask)
     S, eliminate = jnp.asarray(S), jnp.asarray(eliminate)
     size = S.shape[-1]
@@ -533,7 +536,7 @@ def symmetric_elimination(S: ArrayLike, eliminate: np.ndarray) -> tuple[Array, A
         p = jnp.argmax(jnp.where(remaining, jnp.abs(jnp.diagonal(S)), -1.0))
         column = S[:, p]
         pivot = column[p]
-        S = S - jnp.outer(column, column) / jnp.where(pivot == 0, 1.0, pivot)
+        S = S - jnp.where(pivot == 0, 0.0, jnp.outer(column, column) / jnp.where(pivot == 0, 1.0, pivot))
         return S, remaining & (rows != p), count + (pivot < 0)
 
     # A loop, not unrolled: one copy of the elimination in the program.

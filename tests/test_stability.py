@@ -298,8 +298,6 @@ def test_chains_of_sub_pieces_resolve_what_more_pieces_did():
     stability they part more, -309 on 16 against -502 on 128 at F = 0.5).  Its margin is that
     of the exact 16-piece Hessian (the inner nodes eliminated exactly): with twice the
     sub-pieces it moves by the integration's error only."""
-    import dataclasses
-
     import jax
     import jax.numpy as jnp
 

@@ -317,6 +317,11 @@ def test_chains_of_sub_pieces_resolve_what_more_pieces_did():
         tested[pieces] = (int(single.instability_index), float(single.stability_margin))
     assert all(index == 8 for index, _ in tested.values()), tested
     assert tested[64][1] == pytest.approx(tested[256][1], rel=0.01)
+    # At the default 16 pieces the chains fix the index, and the solve tests it again on the
+    # pieces its wrench asks for the margin and direction of its mode.
+    default = helixrod.solve_boundary_value(spring, length, start=start, end=end, guess=last)
+    assert default.stability_pieces == 64 and int(default.instability_index) == 8
+    assert float(default.stability_margin) == pytest.approx(tested[64][1], rel=1e-9)
 
     options = helixrod.BoundaryValueOptions()
     N, M0, xs, frames = stability_inputs(last)[:4]

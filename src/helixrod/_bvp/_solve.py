@@ -725,9 +725,10 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
         """`trial` with its stability resolved (`resolved_stability`: only where it
         converged and its test did not resolve the wrench) and its verdict."""
         judged = verdict(trial)
-        if judged[0] and judged[1] < 0:
-            trial = resolved_stability(rod, length, end, trial, options)
-            judged = verdict(trial)
+        if judged[0]:
+            resolved = resolved_stability(rod, length, end, trial, options)
+            if resolved is not trial:
+                trial, judged = resolved, verdict(resolved)
         return trial, judged
 
     def flagged(chosen, judged):

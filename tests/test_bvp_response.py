@@ -198,11 +198,12 @@ def test_rotation_response_agrees_with_force_extension():
     assert float(default.rotation) == pytest.approx(float(held[0]), abs=1e-9)
     np.testing.assert_allclose(default.force, single.force, atol=1e-8)
     # Its stability: on the curve's 16 pieces, each a chain of the sub-pieces its wrench asks
-    # (before, 16 pieces did not resolve it: tested again on 64), as the single solve's (its
-    # wrench asks for no more than 16 pieces): the same unstable spring (a plectoneme is nearer).
-    assert turned.solutions.stability_pieces == single.stability_pieces == DEFAULT_OPTIONS.stability_pieces
+    # (before the chains, 16 pieces did not resolve it: tested again on 64); the single solve
+    # tests it again on the 64 its wrench asks: the same unstable spring (a plectoneme is nearer).
+    assert turned.solutions.stability_pieces == DEFAULT_OPTIONS.stability_pieces and single.stability_pieces == 64
     assert int(turned.instability_index[0]) == int(single.instability_index) > 0
-    np.testing.assert_allclose(turned.stability_margin[0], single.stability_margin, rtol=1e-6)
+    # (margins -92.0 on the 16 chained pieces, -89.4 on 64: the metric's discretisation)
+    np.testing.assert_allclose(turned.stability_margin[0], single.stability_margin, rtol=0.05)
 
 
 def test_response_curve_flags_a_bad_point_without_spoiling_the_others():

@@ -366,7 +366,7 @@ def follow_branch(
             inputs = (record["force"], record["moment0"], record["xs"], record["frames"], record["end_frame"], RESULTS.successful)
             tested = stability_of_nodes(rod, problem.length, record["end"], *inputs, options)
             # More pieces where these do not resolve the wrench, as `solve_boundary_value` takes.
-            tested, _ = resolved_test(rod, problem.length, record["end"], inputs, tested, options, record["end_position"])
+            tested, _ = resolved_test(rod, problem.length, record["end"], inputs, tested, options, record["end_position"], tested[4])
             index, margin, rotation = jax.device_get((tested[0], tested[1], tested[3]))
         return dict(record, **host, index=index, margin=margin, rotation=rotation)
 

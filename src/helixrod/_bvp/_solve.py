@@ -168,12 +168,12 @@ def as_warm_start(rod, length, start: Clamped, end: EndCondition, guess, options
 
 def _stability_where_solved(rod, length, end: EndCondition, N, M0, xs, frames, end_frame, result, options: BoundaryValueOptions):
     """`stability` on `options.stability_pieces` pieces, undefined (index -1, NaN margin,
-    no push, NaN rotation) where the solve did not succeed; the rotation it counts made
-    exact with the solve's start and `end_frame` (`exact_rotation`)."""
-    index, margin, push, counted = stability(rod, length, end, N, M0, xs, frames, options)
+    no push, NaN rotation, not chained) where the solve did not succeed; the rotation it
+    counts made exact with the solve's start and `end_frame` (`exact_rotation`)."""
+    index, margin, push, counted, chained = stability(rod, length, end, N, M0, xs, frames, options)
     defined = result == RESULTS.successful
     rotation = jnp.where(defined, exact_rotation(frames[0], end_frame, counted), jnp.nan)
-    return jnp.where(defined, index, -1), jnp.where(defined, margin, jnp.nan), jnp.where(defined, push, 0.0), rotation
+    return jnp.where(defined, index, -1), jnp.where(defined, margin, jnp.nan), jnp.where(defined, push, 0.0), rotation, defined & chained
 
 
 def turns_flagged(result, rotation, end: EndCondition):
@@ -189,9 +189,9 @@ def stability_inputs(sol) -> tuple:
 
 
 def with_stability(sol, tested, pieces: int):
-    """`sol` with the stability test's `(index, margin, push, rotation)` on `pieces` pieces
-    (`replaced`)."""
-    index, margin, push, rotation = tested
+    """`sol` with the stability test's `(index, margin, push, rotation, ...)` on `pieces`
+    pieces (`replaced`)."""
+    index, margin, push, rotation = tested[:4]
     return replaced(
         sol, instability_index=index, stability_margin=margin, unstable_direction=push, rotation=rotation, stability_pieces=pieces
     )
@@ -202,13 +202,15 @@ def stability_at_points(rod, length, ends: EndCondition, N, M0, xs, frames, end_
     along the leading axis of `ends` and the solutions' arrays) -- of the first `count`
     (traced: one program tests a curve's points and, in its first slot, a bisection's single
     trials), the others left undefined (index -1, NaN margin and rotation, no push):
-    `(index, margin, push, rotation)` per point.  A loop, not `vmap`: batched, the test ran
+    `(index, margin, push, rotation, chained)` per point.  A loop, not `vmap`: batched, the test ran
     no faster (a 50-point curve's 37-40 ms either way) and its program traced in 0.75 s
     instead of 0.30 s and compiled in 2.5 s of CPU instead of 1.8 s; the same results to
     1e-9."""
     points = (ends, N, M0, xs, frames, end_frames, result)
     n, dtype = N.shape[0], N.dtype
-    untested = (jnp.full(n, -1, jnp.int32), jnp.full(n, jnp.nan, dtype), jnp.zeros((n, 6), dtype), jnp.full(n, jnp.nan, dtype))
+    untested = (
+        jnp.full(n, -1, jnp.int32), jnp.full(n, jnp.nan, dtype), jnp.zeros((n, 6), dtype), jnp.full(n, jnp.nan, dtype), jnp.zeros(n, bool)
+    )
 
     def one(i, tested):
         point = jax.tree.map(lambda a: a[i], points)
@@ -218,7 +220,7 @@ def stability_at_points(rod, length, ends: EndCondition, N, M0, xs, frames, end_
 
 
 #: `stability_of_nodes(rod, length, end, N, M0, xs, frames, end_frame, result, options)`:
-#: `(index, margin, push, rotation)` of the equilibrium with lab start wrench (`N`, `M0`),
+#: `(index, margin, push, rotation, chained)` of the equilibrium with lab start wrench (`N`, `M0`),
 #: shooting nodes `xs`, `frames` and end frame (`stability_inputs`), undefined where
 #: `result` is not a success.  A
 #: program of its own: the solve and the test compile side by side at a first call
@@ -229,11 +231,13 @@ stability_of_nodes = jit(_stability_where_solved, trace_cache=True)
 
 
 def restability(rod, length, end: EndCondition, sol, options: BoundaryValueOptions):
-    """`sol` with its stability tested on `options.stability_pieces` pieces.  Measured per
+    """`(sol with its stability tested on options.stability_pieces pieces, chained)`
+    (`stability`'s flag: whether its pieces needed chains; on the device).  Measured per
     call (the default cantilever): the program's dispatch 12 us with these arguments against
     56 us with the whole solution in and out, and `replaced` 6 us against 66 us for
     `dataclasses.replace`, which runs the solution's `__init__` again."""
-    return with_stability(sol, stability_of_nodes(rod, length, end, *stability_inputs(sol), options), options.stability_pieces)
+    tested = stability_of_nodes(rod, length, end, *stability_inputs(sol), options)
+    return with_stability(sol, tested, options.stability_pieces), tested[4]
 
 
 # A program of its own, compiled to run once (one per call of `solve_boundary_value`), as
@@ -245,16 +249,17 @@ def _bending_stiffness(rod):
 
 
 def solve_with_warm_start(rod, length, start: Clamped, end: EndCondition, guess, saveat, options: BoundaryValueOptions, guess_kind="helix"):
-    """`solve`, with the guess first made a `WarmStart` (`as_warm_start`; not under
-    continuation, which starts from the unloaded rod, nor for a guess that is one), and the
-    stability test (`options.stability_pieces`) as a program of its own (`restability`),
-    the two compiled side by side at the first call (`_compile_side_by_side`)."""
+    """`(solution, chained)`: `solve`, with the guess first made a `WarmStart`
+    (`as_warm_start`; not under continuation, which starts from the unloaded rod, nor for a
+    guess that is one), and the stability test (`options.stability_pieces`) as a program of
+    its own (`restability`; `chained` its flag, None untested), the two compiled side by
+    side at the first call (`_compile_side_by_side`)."""
     converts = options.continuation == 0 and not isinstance(guess, WarmStart)
     _compile_side_by_side(rod, length, start, end, guess, saveat, options, guess_kind, converts)
     if converts:
         guess = as_warm_start(rod, length, start, end, guess, options, guess_kind)
     sol = solve(rod, length, start, end, guess, saveat, options, guess_kind, test_stability=False)
-    return restability(rod, length, end, sol, options) if options.stability_pieces > 0 else sol
+    return restability(rod, length, end, sol, options) if options.stability_pieces > 0 else (sol, None)
 
 
 def _solve_signature(rod, length, start, end, guess, saveat, options, guess_kind, converts: bool):
@@ -354,7 +359,7 @@ def solve(
     out = _observe(args, N, M0, saveat, observed, x_end[-1], frame_end[-1])
     tested = test_stability and options.stability_pieces > 0
     if tested:
-        index, margin, push, rotation = _stability_where_solved(rod, length, end, N, M0, xs, frames, frame_end[-1], result, options)
+        index, margin, push, rotation, _ = _stability_where_solved(rod, length, end, N, M0, xs, frames, frame_end[-1], result, options)
         result = turns_flagged(result, rotation, end)
     else:
         index, margin, push = jnp.asarray(-1, jnp.int32), jnp.asarray(jnp.nan, dtype), jnp.zeros(6, dtype)
@@ -504,14 +509,14 @@ def solve_boundary_value(
         pieces = options.stability_pieces and max(options.stability_pieces, stability_pieces_for(rod, length, n0, m0))
         options = dataclasses.replace(options, segments=segments_needed, stability_pieces=min(pieces, MAX_STABILITY_PIECES))
     guess = fit_guess(guess, options.segments, start)
-    sol = solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind)
+    sol, chained = solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind)
     # One program made every field: two of them say whether they are concrete (the residual
     # carries no derivative; the force does, under an eager jax.jvp or jax.jacfwd).
     if not (is_concrete(sol.residual, sol.force) and jnp.ndim(sol.residual) == 0):
         # Traced: flagged here (an eager call flags after its fallbacks, `_physical`).
         sol = replaced(sol, result=turns_flagged(sol.result, sol.rotation, end))
         return raise_if_failed(sol, sol.result, f"{owner}: the shooting equations were not solved", _HINT) if throw else sol
-    sol, ok = _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind)
+    sol, ok = _physical(sol, chained, rod, length, start, end, default_guess, saveat, options, guess_kind)
     if throw and not ok:
         if has_code(sol.result, RESULTS.other_whole_turns):
             held = float(sol.rotation)
@@ -609,25 +614,34 @@ def _smallest_stiffness(rod):
     return stiffness_range(rod)[0]
 
 
-def stability_pieces_for(rod, length, force, moments) -> int:
-    """Pieces of the stability test that resolve a wrench (`PIECE_RESOLUTION`): lab `force`
-    `(3,)` and the moments `(..., 3)` along the rod; a power of two (concrete; on the
-    host)."""
+def wrench_rate(rod, force, moments) -> float:
+    """The scale $\\sqrt{|N|/K_{min}} + \\max|m|/K_{min}$ of a wrench (`PIECE_RESOLUTION`):
+    lab `force` `(3,)` and the moments `(..., 3)` along the rod (concrete; on the host)."""
     k_min = float(_smallest_stiffness(rod))
     force, moments = np.asarray(force), np.asarray(moments)
     largest = float(np.max(np.linalg.norm(moments.reshape(-1, 3), axis=-1)))
-    rate = np.sqrt(float(np.linalg.norm(force)) / k_min) + largest / k_min
+    return float(np.sqrt(float(np.linalg.norm(force)) / k_min) + largest / k_min)
+
+
+def pieces_for_rate(rate: float, length) -> int:
+    """Pieces of the stability test that resolve a wrench of scale `rate` (`wrench_rate`),
+    with a margin of 1.25: a power of two."""
     return int(2 ** np.ceil(np.log2(max(1.0, 1.25 * rate * float(length) / PIECE_RESOLUTION))))
 
 
-def wrench_pieces(rod, length, force, moment0, node_position, end_position) -> int:
-    """`stability_pieces_for` the wrench of an equilibrium: lab force `force`, lab moment
-    `moment0` at s = 0 and the moments it makes about its shooting nodes and its end (the
-    lab moment about a point moves with the point)."""
+def stability_pieces_for(rod, length, force, moments) -> int:
+    """`pieces_for_rate` of a wrench (`wrench_rate`)."""
+    return pieces_for_rate(wrench_rate(rod, force, moments), length)
+
+
+def equilibrium_rate(rod, force, moment0, node_position, end_position) -> float:
+    """`wrench_rate` of an equilibrium: lab force `force`, lab moment `moment0` at s = 0 and
+    the moments it makes about its shooting nodes and its end (the lab moment about a point
+    moves with the point)."""
     force, moment0, node_position, end_position = jax.device_get((force, moment0, node_position, end_position))
     points = np.concatenate([node_position, np.asarray(end_position)[None]])
     moments = np.asarray(moment0)[None] - np.cross(points - node_position[0][None], np.asarray(force)[None])
-    return stability_pieces_for(rod, length, force, moments)
+    return wrench_rate(rod, force, moments)
 
 
 def _moment_loaded(end: EndCondition) -> bool:
@@ -643,29 +657,36 @@ def _finer_pieces(pieces: int, needed: int) -> int:
     return min(max(2 * pieces, needed), MAX_STABILITY_PIECES)
 
 
-def resolved_test(rod, length, end: EndCondition, inputs: tuple, tested: tuple, options: BoundaryValueOptions, end_position):
-    """`(test, pieces)`: the stability test `tested` = (index, margin, push) of one concrete
-    equilibrium at `end` (`inputs` = its `stability_inputs`, its end at `end_position`) on
-    `options.stability_pieces` pieces, and again while that does not resolve its wrench (a
-    converged point of index -1, or one whose wrench asks for more pieces than it was
-    tested on, `wrench_pieces`: their chains of sub-pieces give its index, the margin and
-    direction are the coarser pieces'): on twice the pieces or as many as the wrench asks,
-    up to `MAX_STABILITY_PIECES` (`stability_of_nodes`); not where the end is loaded by a
-    moment, whose stability is not defined.  (A curve's points and its bisection's trials
-    keep the curve's pieces: one program for all of them.)"""
+def resolved_test(rod, length, end: EndCondition, inputs: tuple, tested: tuple, options: BoundaryValueOptions, end_position, chained=None):
+    """`(test, pieces)`: the stability test `tested` = (index, margin, push, ...) of one
+    concrete equilibrium at `end` (`inputs` = its `stability_inputs`, its end at
+    `end_position`) on `options.stability_pieces` pieces, and again while that does not
+    resolve its wrench (a converged point of index -1, or one whose pieces needed chains --
+    `chained`, the test's flag, which bounds the moments along each piece; None: not known
+    -- and are longer than `PIECE_RESOLUTION` for its wrench, `equilibrium_rate`: the chains
+    give its index, the margin and direction are those of pieces too coarse for its modes):
+    on twice the pieces or as many as the wrench asks (`pieces_for_rate`), up to
+    `MAX_STABILITY_PIECES` (`stability_of_nodes`); not where the end is loaded by a moment,
+    whose stability is not defined.  (A curve's points and its bisection's trials keep the
+    curve's pieces: one program for all of them.)"""
     pieces = options.stability_pieces
     while 0 < pieces < MAX_STABILITY_PIECES:
-        result, index = jax.device_get((inputs[-1], tested[0]))
+        result, index, chained = jax.device_get((inputs[-1], tested[0], chained))
+        # The common case in one read: a resolved test of pieces that needed no chains (the
+        # wrench's pieces read on the host cost ~60 us a solve).
+        if int(index) >= 0 and chained is not None and not bool(chained):
+            break
         if not bool(succeeded(result)) or _moment_loaded(end):
             break
         # Also where the pieces' chains resolved the index: the margin and direction are
         # then those of the coarser pieces (at 150 critical loads of a column the direction
         # of 16 chained pieces had cosine 0.43 with that of 128 pieces; of 32: 0.91).
-        needed = wrench_pieces(rod, length, inputs[0], inputs[1], inputs[2], end_position)
-        if int(index) >= 0 and needed <= pieces:
+        rate = equilibrium_rate(rod, inputs[0], inputs[1], inputs[2], end_position)
+        if int(index) >= 0 and rate * float(length) <= pieces * PIECE_RESOLUTION:
             break
-        pieces = _finer_pieces(pieces, needed)
+        pieces = _finer_pieces(pieces, pieces_for_rate(rate, length))
         tested = stability_of_nodes(rod, length, end, *inputs, dataclasses.replace(options, stability_pieces=pieces))
+        chained = tested[4]
     return tested, pieces
 
 
@@ -680,24 +701,27 @@ def test_pieces_ahead(rod, length, points, options: BoundaryValueOptions) -> Non
     conjugate point of its own comes here)."""
     counts = {}
     for end, sol in points:
-        needed = wrench_pieces(rod, length, sol.force, sol.moment0, sol.node_position, sol.end_position)
-        counts.setdefault(_finer_pieces(options.stability_pieces, needed), (end, sol))
+        rate = equilibrium_rate(rod, sol.force, sol.moment0, sol.node_position, sol.end_position)
+        counts.setdefault(_finer_pieces(options.stability_pieces, pieces_for_rate(rate, length)), (end, sol))
     if len(counts) > 1:  # (one count: its call compiles it as soon)
         for pieces, (end, sol) in counts.items():
             compile_ahead(stability_of_nodes, rod, length, end, *stability_inputs(sol), dataclasses.replace(options, stability_pieces=pieces))
 
 
-def resolved_stability(rod, length, end: EndCondition, sol: BoundaryValueSolution, options: BoundaryValueOptions) -> BoundaryValueSolution:
-    """`sol` (one concrete solution at `end`, tested on `options.stability_pieces` pieces)
-    with its test resolved (`resolved_test`)."""
+def resolved_stability(
+    rod, length, end: EndCondition, sol: BoundaryValueSolution, options: BoundaryValueOptions, chained=None
+) -> BoundaryValueSolution:
+    """`sol` (one concrete solution at `end`, tested on `options.stability_pieces` pieces;
+    `chained` as `resolved_test`) with its test resolved (`resolved_test`)."""
     tested = (sol.instability_index, sol.stability_margin, sol.unstable_direction)
-    tested, pieces = resolved_test(rod, length, end, stability_inputs(sol), tested, options, sol.end_position)
+    tested, pieces = resolved_test(rod, length, end, stability_inputs(sol), tested, options, sol.end_position, chained)
     return sol if pieces == options.stability_pieces else with_stability(sol, tested, pieces)
 
 
-def _physical(sol, rod, length, start, end, default_guess, saveat, options, guess_kind) -> tuple[BoundaryValueSolution, bool]:
+def _physical(sol, chained, rod, length, start, end, default_guess, saveat, options, guess_kind) -> tuple[BoundaryValueSolution, bool]:
     """The eager defaults that make a solve land on the physical state: more stability
-    pieces where the test does not resolve the wrench, and, from the default guess, when
+    pieces where the test does not resolve the wrench (`chained`: the flag of `sol`'s test,
+    `restability`), and, from the default guess, when
     the direct solve converges to an unstable equilibrium, a solve pushed to either side
     along its most unstable direction; when that fails too, or the direct solve did: for an
     intrinsically straight rod between clamps brought closer than its length, the first
@@ -709,26 +733,28 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
     succeeded."""
     asked = None
 
-    def verdict(trial) -> tuple[bool, int, bool]:
-        """(succeeded, instability index, holds the asked whole turns) of a solution, its
-        test resolved, in one transfer from the device for the common case (each read cost
-        5-20 us; the checks of an eager call made seven)."""
+    def verdict(trial, chained=None) -> tuple[tuple[bool, int, bool], bool | None]:
+        """(succeeded, instability index, holds the asked whole turns) of a solution, and
+        its test's `chained` flag, in one transfer from the device for the common case (each
+        read cost 5-20 us; the checks of an eager call made seven)."""
         nonlocal asked
         wanted = end.rotation if asked is None else 0.0
-        result, index, rotation, wanted = jax.device_get((trial.result, trial.instability_index, trial.rotation, wanted))
+        result, index, rotation, wanted, chained = jax.device_get(
+            (trial.result, trial.instability_index, trial.rotation, wanted, chained)
+        )
         asked = np.asarray(wanted) if asked is None else asked
         ok = bool(succeeded(result))
         held = not np.isfinite(asked) or bool(holds_turns(np.asarray(rotation), asked))
-        return ok, int(index), held
+        return (ok, int(index), held), (None if chained is None else bool(chained))
 
-    def resolved(trial):
+    def resolved(trial, chained):
         """`trial` with its stability resolved (`resolved_stability`: only where it
         converged and its test did not resolve the wrench) and its verdict."""
-        judged = verdict(trial)
-        if judged[0]:
-            resolved = resolved_stability(rod, length, end, trial, options)
-            if resolved is not trial:
-                trial, judged = resolved, verdict(resolved)
+        judged, chained = verdict(trial, chained)
+        if judged[0] and (judged[1] < 0 or chained is None or chained):
+            retested = resolved_stability(rod, length, end, trial, options, chained)
+            if retested is not trial:
+                trial, judged = retested, verdict(retested)[0]
         return trial, judged
 
     def flagged(chosen, judged):
@@ -737,7 +763,7 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
         return chosen, judged[0]
 
     def solved(guess, options):
-        return resolved(solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind))
+        return resolved(*solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind))
 
     def acceptable(judged) -> bool:
         ok, index, held = judged
@@ -768,7 +794,7 @@ def _physical(sol, rod, length, start, end, default_guess, saveat, options, gues
                 return pushed, pushed_judged
         return None
 
-    sol, judged = resolved(sol)
+    sol, judged = resolved(sol, chained)
     if not default_guess or options.continuation > 0 or acceptable(judged):
         return flagged(sol, judged)
     found = settled(sol, judged)

@@ -200,7 +200,7 @@ def sub_pieces_needed(h, force_rate, start_moment, force, k_min) -> Array:
 
 
 def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: BoundaryValueOptions):
-    """(instability_index, stability_margin, unstable_direction, rotation) of the
+    """(instability_index, stability_margin, unstable_direction, rotation, chained) of the
     equilibrium with lab force `N`, lab moment `M0` at the start and shooting nodes `xs`
     `(k, 3)`, `frames` `(k, 3, 3)`, on `options.stability_pieces` pieces (rounded up to a
     multiple of k).  Each piece is integrated as a chain of as many equal sub-pieces as its
@@ -213,7 +213,9 @@ def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: Bounda
     (N, M0) that moves the rod along its most unstable direction (zero unless unstable).
     `rotation`: the end's total rotation about $e_z$ (`_rotation.py`) as counted on the
     pieces' way, to their integration's accuracy (NaN where not counted; `exact_rotation`
-    makes it exact).  No derivatives."""
+    makes it exact).  `chained`: whether any piece was integrated as a chain (its wrench asks
+    for more pieces: the index is exact, the margin and direction are the coarser pieces').
+    No derivatives."""
     rod, length, end, N, M0, xs, frames = no_gradient((rod, length, end, N, M0, xs, frames))
     k = xs.shape[0]
     q = -(-options.stability_pieces // k)
@@ -260,16 +262,16 @@ def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: Bounda
         start = (node, jnp.zeros((12, 12), N.dtype), jnp.zeros((), jnp.int32), start_count(frame))
         end_node, S, negatives, rotation = jax.lax.fori_loop(0, count, chain, start)
         resolved = (needed <= MAX_SUB_PIECES) & (negatives == 0)
-        return end_node, (S, resolved, rotation, end_node)
+        return end_node, (S, resolved, count > 1, rotation, end_node)
 
-    _, (hessians, resolved, rotations, ends) = per_piece(
+    _, (hessians, resolved, chained, rotations, ends) = per_piece(
         lambda i: jax.lax.scan(chained_piece, (xs[i], frames[i]), None, length=q), jnp.arange(k)
     )
     flat = lambda a: a.reshape((p,) + a.shape[2:])  # noqa: E731
     hessians = flat(hessians) / (weight[:, None] * weight[None, :])[None]
     end_position, end_frame = ends[0][-1, -1], ends[1][-1, -1]
     tested = assess(rod, length, end, N, hessians, end_position, jnp.all(resolved), end_frame)
-    return (*tested, counted_rotation(rotations))
+    return (*tested, counted_rotation(rotations), jnp.any(chained))
 
 
 def assess(rod, length, end: EndCondition, N, hessians, end_position, resolved, end_frame=None):

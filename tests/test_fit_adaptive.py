@@ -1,5 +1,5 @@
-"""The default multistart of helix fits: batches of starts with early stopping once two
-starts agree on the best minimum (`_pipeline._adaptive_multistart`)."""
+"""The default multistart of helix fits: starts solved one after another with early stopping
+once two agree on the best minimum (`_pipeline._adaptive_multistart`)."""
 
 import jax
 import numpy as np
@@ -35,7 +35,7 @@ def test_early_stop_finds_the_full_runs_minimum(seed):
     full = hr.fit_stiffness(data, uhat=rod.uhat, n_starts=32)
     assert fit.ok and full.ok
     assert full.n_starts == 32 and full.start_costs.shape == (32,)
-    assert fit.n_starts < 32 and fit.start_costs.shape == (fit.n_starts,) and fit.n_starts % _pipeline.ADAPTIVE_BATCH == 0
+    assert _pipeline.ADAPTIVE_LEAST <= fit.n_starts < 32 and fit.start_costs.shape == (fit.n_starts,)
     assert fit.n_agree >= _pipeline.ADAPTIVE_AGREE
     assert abs(float(fit.cost) - float(full.cost)) <= 1e-9 * float(full.cost)
     scale = np.abs(parameter_vector(full.rod)[:5]).max()
@@ -87,3 +87,30 @@ def test_a_converged_start_at_the_best_minimum_is_preferred():
     # Without a converged start at the minimum, the lowest cost stays the best.
     results = codes(jax.numpy.array([False, False, True]))
     assert _pipeline._agreement(p_all, cost, model, param, results)[:2] == (0, 2)
+
+
+def test_the_compiled_early_stop_counts_agreeing_costs(compilations):
+    """`_starts_until_agreement` solves starts in order until `least` are solved and two of
+    them (the earlier calls' best cost counting as one) reach the best cost, within `count`:
+    identical starts reach identical costs."""
+    rod, data = _problem(1000)
+    fit = hr.fit_stiffness(data, uhat=rod.uhat, n_starts=1)
+    problem = fit.problem
+    param = problem.parameterisation
+    z0 = np.asarray(param.starts(param.internal(parameter_vector(fit.rod)), 1, jax.random.key(0))[0])
+    z0s = np.stack([z0] * 6)
+
+    def solved(count, least, prior=np.inf):
+        rows, n = _pipeline._starts_until_agreement(
+            z0s, np.int32(count), np.int32(least), np.asarray(prior), problem.model, param, problem.solver,
+            _pipeline.SCREEN_STEPS,
+        )
+        return int(n), np.asarray(rows[1])
+
+    n, costs = solved(6, 0)
+    assert n == 2 and costs[0] == costs[1] and np.all(np.isinf(costs[2:]))
+    compiled = len(compilations)  # the counts and the prior are arrays: one program for all
+    assert solved(6, 4)[0] == 4 and solved(3, 5)[0] == 3
+    assert solved(6, 0, prior=float(costs[0]))[0] == 1  # agrees with an earlier call's best
+    assert solved(6, 0, prior=0.5 * float(costs[0]))[0] == 6  # never reaches it
+    assert len(compilations) == compiled

@@ -506,7 +506,7 @@ def solve_boundary_value(
         if not is_concrete(rod, length, start, end, guess):
             raise ValueError(f"{owner}: segments='auto' needs concrete inputs (not under jax.jit or vmap)")
         segments_needed, _, (n0, m0) = needed_segments(rod, length, start, end, guess, guess_kind)
-        pieces = options.stability_pieces and max(options.stability_pieces, stability_pieces_for(rod, length, n0, m0))
+        pieces = options.stability_pieces and max(options.stability_pieces, pieces_for_rate(wrench_rate(rod, n0, m0), length))
         options = dataclasses.replace(options, segments=segments_needed, stability_pieces=min(pieces, MAX_STABILITY_PIECES))
     guess = fit_guess(guess, options.segments, start)
     sol, chained = solve_with_warm_start(rod, length, start, end, guess, saveat, options, guess_kind)
@@ -627,11 +627,6 @@ def pieces_for_rate(rate: float, length) -> int:
     """Pieces of the stability test that resolve a wrench of scale `rate` (`wrench_rate`),
     with a margin of 1.25: a power of two."""
     return int(2 ** np.ceil(np.log2(max(1.0, 1.25 * rate * float(length) / PIECE_RESOLUTION))))
-
-
-def stability_pieces_for(rod, length, force, moments) -> int:
-    """`pieces_for_rate` of a wrench (`wrench_rate`)."""
-    return pieces_for_rate(wrench_rate(rod, force, moments), length)
 
 
 def equilibrium_rate(rod, force, moment0, node_position, end_position) -> float:

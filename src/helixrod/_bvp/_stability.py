@@ -139,8 +139,8 @@ def piece_hessian(T) -> Float[Array, "12 12"]:
 
 def second_variation(rod, length, end: EndCondition, N, end_position, hessians, end_frame=None):
     """The rod's Hessian in its free node variations, assembled from the pieces' `(p, 12,
-    12)` Hessians (`piece_hessian`, or `chained_hessian`), with the load's (`end_frame`: the end's, where a `Loaded` end's
-    hook needs it); scaled to the dimensionless form of the module docstring and
+    12)` Hessians (`piece_hessian`, or a chain's, `condensed`), with the load's (`end_frame`:
+    the end's, where a `Loaded` end's hook needs it); scaled to the dimensionless form of the module docstring and
     symmetrised.  `(6p, 6p)`; the fixed slots of the last node are decoupled
     with a large diagonal (their eigenvalues lie far above the soft ones).  Also returns
     the mask of free slots."""

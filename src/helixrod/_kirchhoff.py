@@ -30,7 +30,7 @@ from ._misc import (
     as_float, check_integer, differentiated_part, float_dtype, increases_within, increasing_within, is_concrete, no_gradient,
 )
 from ._rod import check_one_rod
-from ._saved_points import diffeqsolve_saving
+from ._ode import solve_ode
 from ._status import RESULTS, promote, raise_if_failed
 
 
@@ -112,14 +112,15 @@ def _per_unit_length(field):
     """`field(s, y, args)` of the arc length $s \\in [0, L]$ as the field of $\\sigma = s/L
     \\in [0, 1]$, $dy/d\\sigma = L\\,f(L\\sigma, y)$, with args `(args, L)`.
 
-    Every integration runs over $\\sigma$ so that diffrax's end time is the constant 1, not the
-    traced length: `diffrax.diffeqsolve` computes its end time less 100 ULPs by 100 sequential
-    `prevbefore`s of it, ~2300 HLO instructions (~1600 after XLA's passes) that XLA folds into
-    one constant only when the end time is a constant, and otherwise compiles and runs in every
-    program.  Measured by
+    Every integration runs over $\\sigma$ so that the end time is the constant 1, not the
+    traced length: the loop (`_ode.solve_ode`) computes its end time less 100 ULPs on the host
+    and takes only constant times.  (Before that loop, `diffrax.diffeqsolve` computed it by 100
+    sequential `prevbefore`s, ~2300 HLO instructions (~1600 after XLA's passes) that XLA folds
+    into one constant only when the end time is a constant, and otherwise compiled and ran in
+    every program; the unit interval cut them, measured by
     `benchmarks/bench_first_calls.py --sizes` (instructions after XLA's passes): `solve_static`
     4053 -> 2369, with 201 saved points 5047 -> 3365, its `jax.grad` 7217 -> 3737,
-    `solve_boundary_value` 15898 -> 14279.  The controller is scale-invariant, so the steps
+    `solve_boundary_value` 15898 -> 14279.)  The controller is scale-invariant, so the steps
     are those over $s$ up to round-off (its first step's heuristic is not, which moves the
     solution within the tolerance)."""
 
@@ -502,12 +503,12 @@ class _Flow(eqx.Module):
             dt0 = None
         term = BodyVelocityTerm(_body_velocity_per_unit_length) if geometric else diffrax.ODETerm(_ambient_field_per_unit_length)
         adjoint = diffrax.RecursiveCheckpointAdjoint() if self.adjoint is None else self.adjoint
-        _, ys, sol = diffeqsolve_saving(
+        ys, result, stats = solve_ode(
             term, self.solver, 0.0, _one_like(length), dt0, y0, ts=sigma, args=(rod, length),
-            stepsize_controller=controller, max_steps=self.max_steps, adjoint=adjoint, throw=False,
+            stepsize_controller=controller, max_steps=self.max_steps, adjoint=adjoint,
         )
         s = jnp.reshape(length, (1,)) if ts is None else ts
-        return s, ys, sol.result, sol.stats["num_accepted_steps"]
+        return s, ys, result, stats["num_accepted_steps"]
 
 
 def _one_like(length):
@@ -576,13 +577,13 @@ def _sensitivities(diff, rest, length, ts, rtol, atol, max_steps):
 
     start = lambda q: split(q)[1]  # noqa: E731
     S0 = jax.vmap(lambda e: jax.jvp(start, (p,), (e,))[1], out_axes=-1)(basis)
-    _, ys, sol = diffeqsolve_saving(
+    ys, result, _ = solve_ode(
         diffrax.ODETerm(_per_unit_length(rates)), diffrax.Dopri8(), 0.0, _one_like(length), None, (start(p), S0),
         ts=None if ts is None else ts / length, args=(p, length),
         stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol), max_steps=max_steps,
-        adjoint=diffrax.ForwardMode(), throw=False,
+        adjoint=diffrax.ForwardMode(),
     )
-    ok = sol.result == diffrax.RESULTS.successful
+    ok = result == diffrax.RESULTS.successful
     return jax.tree.map(lambda S: jnp.where(ok, S, jnp.nan), ys[1])
 
 

@@ -11,7 +11,7 @@ the compiled programs; a later process with the same signature deserialises it
 3.7 -> 1.5 s on one core (`benchmarks/bench_first_calls.py`), 3.5 -> 1.5 s on 2 cores; of
 the shape fit of `benchmarks/bench_finite.py` (its Jacobian program traces in ~4.6 s)
 19.5-20.8 -> 2.1 s on 2 cores, with its saved points free of host callbacks (now the dense
-output of `_saved_points.py`, saved by the shooting solve's own integrations); of `force_extension` (8 points) 7.3-7.8 -> 4.3-4.7 s on 2 cores; of
+output of `_ode.py`, saved by the shooting solve's own integrations); of `force_extension` (8 points) 7.3-7.8 -> 4.3-4.7 s on 2 cores; of
 `solve_static` 1.2 -> 0.47 s on one core.  The export costs the cold process 0.2-0.4 s more
 than a plain trace and lowering; a signature lookup costs a later call 0.02-0.08 ms.
 

@@ -3,12 +3,18 @@ helixrod's own in forward mode, which saves from the solver's continuous extensi
 
 `diffrax.diffeqsolve` costs helixrod's programs in three ways that its own loop does not:
 
-* it computes its end time less 100 ULPs by 100 sequential `prevbefore`s, ~2300 HLO
-  instructions in every program with a solve (XLA folds them into one constant where the
-  end time is a constant, as helixrod's always is, but folding them in a large program is
-  slow): the continuation program of a force-extension curve compiled in 2.3-2.8 s without
-  them against 3.0-3.3 s with them (fresh processes on 2 cores, the same program); here the
-  end time less 100 ULPs is computed on the host, once;
+* it computes its end time less 100 ULPs by 100 sequential `prevbefore`s, ~2450 HLO
+  instructions in every program with a solve, which XLA folds into one constant where the
+  end time is a constant (as helixrod's always is) but slowly in a large program: with
+  them replaced by the identity, the continuation program of a force-extension curve
+  compiled in 2.3-2.8 s against 3.0-3.3 s (fresh processes on 2 cores).  Here the end time
+  less 100 ULPs is computed on the host, once.  First calls, cold, fresh processes on 2
+  cores alternating with `diffrax.diffeqsolve`'s loop (`benchmarks/bench_first_calls.py`'s
+  cases): `solve_static` 0.58-0.71 against 0.86-0.93 s, its `jax.grad` 1.83 against
+  2.02-2.12 s, a 50-point force-extension curve 4.44-4.61 against 4.75-5.04 s, one across
+  its critical force 4.81-4.82 against 4.97-5.39 s, `solve_boundary_value` 3.36-3.61
+  against 3.34-3.56 s; later calls the same (a planar elastica, one core, best of 1500:
+  58-61 against 60-61 us);
 * it traces the step up to three times (twice more to find which of its outputs are
   static);
 * it checks `SaveAt(ts)` (increasing, within the interval) with `equinox.error_if`, whose
@@ -39,7 +45,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
 
 
 def solve_ode(terms, solver, t0, t1, dt0, y0, *, ts, args, stepsize_controller, adjoint, max_steps: int):

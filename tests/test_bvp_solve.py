@@ -698,3 +698,27 @@ def test_the_readme_spring_solves_in_float32():
     reference = hr.solve_boundary_value(spring, 30.0, start=start, end=end, segments=4)
     np.testing.assert_allclose(out["force"], reference.force, rtol=1e-4, atol=1e-4 * float(jnp.linalg.norm(reference.force)))
     assert hr.BoundaryValueOptions().for_dtype(jnp.float64).atol == hr.BoundaryValueOptions().atol
+
+
+@pytest.mark.heavy  # a 2-segment shooting program of its own: ~15 s to compile
+def test_automatic_segments_follow_the_guess_growth_and_need_concrete_inputs():
+    """`segments="auto"`: as many shooting pieces as the guess's spatial growth asks
+    (`needed_segments`, more than one here), the twisted spring of 5 turns held one turn past
+    its unloaded end under F = 0.1 solved stable with the bulk helix's moment; a traced
+    input or another word is a clear error."""
+    from helixrod._bvp._solve import needed_segments
+
+    length = 5 * 2 * np.pi / np.hypot(1.0, 0.3)
+    turned = float(hr.unloaded_observables(SPRING, length)[1]) + 2 * np.pi
+    start, end = hr.axial_ends(SPRING, length, force=0.1, rotation=turned)
+    sol = hr.solve_boundary_value(SPRING, length, start=start, end=end, segments="auto")
+    needed, growth, _ = needed_segments(SPRING, length, start.condition(), end.condition(), None, "helix")
+    assert sol.segments == needed >= 2 and growth > 3.0
+    assert bool(sol.ok) and int(sol.instability_index) == 0
+    bulk = hr.bulk_helix(SPRING, length, force=0.1, rotation=turned)
+    np.testing.assert_allclose(float(sol.moment0[2]), float(bulk.moment), rtol=1e-3)
+    np.testing.assert_allclose(float(sol.rotation), turned, rtol=1e-9)
+    with pytest.raises(ValueError, match="concrete inputs"):
+        jax.jit(lambda L: hr.solve_boundary_value(SPRING, L, end=end, segments="auto").force)(length)
+    with pytest.raises(ValueError, match="'auto'"):
+        hr.solve_boundary_value(SPRING, length, end=end, segments="many")

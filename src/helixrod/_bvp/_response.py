@@ -182,8 +182,13 @@ def _curve_setup(rod, length):
     """The clamped start, the unloaded end rotation and the unloaded bulk guess of a curve."""
     start = unloaded_clamp(no_gradient(rod))
     _, theta0 = unloaded_observables(rod, length)
-    unloaded = (jnp.asarray(rod.uhat), jnp.zeros(()), jnp.zeros(()))
-    return start, theta0, unloaded
+    return start, theta0, _unloaded_bulk_guess(rod, jnp.asarray(rod.uhat).dtype, jnp)
+
+
+def _unloaded_bulk_guess(rod, dtype, xp):
+    """The warm start of a curve's first bulk solve, `bulk_helix_at`'s (u, mu1, mu2): the
+    unloaded rod (`xp`: `jnp`, or `np` for a carry made on the host)."""
+    return xp.asarray(rod.uhat, dtype), xp.zeros((), dtype), xp.zeros((), dtype)
 
 
 def _observe(rod, length, kind, sol, bulk, v, hint):
@@ -701,8 +706,7 @@ def _trial(rod, length, kind, v, good, v_good, size: int, options: BoundaryValue
     Returned on the host."""
     values = np.zeros((size, 4), v.dtype)
     values[0] = v
-    bulk_guess = (np.asarray(rod.uhat, v.dtype), np.zeros((), v.dtype), np.zeros((), v.dtype))
-    carry = (good.warm_start(), bulk_guess, np.zeros((), v.dtype), np.asarray(v_good), np.bool_(True))
+    carry = (good.warm_start(), _unloaded_bulk_guess(rod, v.dtype, np), np.zeros((), v.dtype), np.asarray(v_good), np.bool_(True))
     one = np.int32(1)
     sols = _continuation(rod, length, kind, values, one, options, carry)[1][2]
     if options.stability_pieces > 0:

@@ -43,7 +43,7 @@ from ._bulk import residual_scales
 from ._ends import CLAMPED, LOADED, AbstractEnd, Clamped, EndCondition, as_start, end_condition, unloaded_clamp
 from ._options import BoundaryValueOptions, with_settings
 from ._rotation import exact_rotation, holds_turns
-from ._stability import PIECE_RESOLUTION, stability, stiffness_range
+from ._stability import PIECE_RESOLUTION, stability, stiffness_range, wrench_scale
 from ._shooting import (
     ShootingArgs,
     WarmStart,
@@ -615,12 +615,11 @@ def _smallest_stiffness(rod):
 
 
 def wrench_rate(rod, force, moments) -> float:
-    """The scale $\\sqrt{|N|/K_{min}} + \\max|m|/K_{min}$ of a wrench (`PIECE_RESOLUTION`):
-    lab `force` `(3,)` and the moments `(..., 3)` along the rod (concrete; on the host)."""
-    k_min = float(_smallest_stiffness(rod))
+    """`wrench_scale` of a wrench of lab `force` `(3,)` and moments `(..., 3)` along the rod
+    (concrete; on the host)."""
     force, moments = np.asarray(force), np.asarray(moments)
     largest = float(np.max(np.linalg.norm(moments.reshape(-1, 3), axis=-1)))
-    return float(np.sqrt(float(np.linalg.norm(force)) / k_min) + largest / k_min)
+    return float(wrench_scale(float(_smallest_stiffness(rod)), float(np.linalg.norm(force)), largest))
 
 
 def pieces_for_rate(rate: float, length) -> int:

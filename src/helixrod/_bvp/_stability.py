@@ -190,13 +190,20 @@ def condensed(S, P):
     return whole[np.ix_(ends, ends)], negatives
 
 
-def sub_pieces_needed(h, force_rate, start_moment, force, k_min) -> Array:
-    """The sub-pieces a piece of length `h` needs to resolve its wrench
-    (`PIECE_RESOLUTION`): along it $|m(s)| \\le |m_a| + |N|\\,s$ (inextensible), so
-    `start_moment` $|m_a|$ and the lab `force` $|N|$ bound its moments; `force_rate`
-    $\\sqrt{|N|/K_{min}}$."""
-    rate = force_rate + (start_moment + force * h) / k_min
-    return jnp.maximum(jnp.ceil(h * rate / PIECE_RESOLUTION), 1.0)
+def wrench_scale(k_min, force, largest_moment):
+    """The inverse length $\\sqrt{|N|/K_{min}} + \\max|m|/K_{min}$ of a wrench of lab force
+    `force` $= |N|$ and moments at most `largest_moment` along the rod: pieces resolve it where
+    their length times it is at most `PIECE_RESOLUTION` (module docstring).  The one form
+    of the rule, for arrays and, on the host, for floats."""
+    sqrt = np.sqrt if isinstance(force, (float, np.floating)) else jnp.sqrt
+    return sqrt(force / k_min) + largest_moment / k_min
+
+
+def sub_pieces_needed(h, start_moment, force, k_min) -> Array:
+    """The sub-pieces a piece of length `h` needs to resolve its wrench (`wrench_scale`):
+    along it $|m(s)| \\le |m_a| + |N|\\,s$ (inextensible), so `start_moment` $|m_a|$ and
+    the lab `force` $|N|$ bound its moments."""
+    return jnp.maximum(jnp.ceil(h * wrench_scale(k_min, force, start_moment + force * h) / PIECE_RESOLUTION), 1.0)
 
 
 def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: BoundaryValueOptions):
@@ -223,7 +230,6 @@ def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: Bounda
     x0 = xs[0]
     k_min, k_mean = stiffness_range(rod)
     force = jnp.linalg.norm(N)
-    force_rate = jnp.sqrt(force / k_min)
     # Node positions over h: the pivots of the elimination balanced (a congruence).
     weight = jnp.tile(jnp.concatenate([jnp.full(3, h), jnp.ones(3, N.dtype)]), 2)
 
@@ -238,7 +244,7 @@ def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: Bounda
 
     def chained_piece(node, _):
         x, frame = node
-        needed = sub_pieces_needed(h, force_rate, jnp.linalg.norm(M0 - jnp.cross(x - x0, N)), force, k_min)
+        needed = sub_pieces_needed(h, jnp.linalg.norm(M0 - jnp.cross(x - x0, N)), force, k_min)
         count = jnp.minimum(needed, MAX_SUB_PIECES).astype(jnp.int32)
         sub_length = h / count
 
@@ -302,7 +308,5 @@ def assess(rod, length, end: EndCondition, N, hessians, end_position, resolved, 
 
 def resolves(rod, h, N, largest_moment) -> Array:
     """Whether pieces of length `h` resolve the wrench of lab force `N` and largest moment
-    `largest_moment` along them: $h\\,(\\sqrt{|N|/K_{min}} + \\max|m|/K_{min}) \\le$
-    `PIECE_RESOLUTION`."""
-    k_min = stiffness_range(rod)[0]
-    return h * (jnp.sqrt(jnp.linalg.norm(N) / k_min) + largest_moment / k_min) <= PIECE_RESOLUTION
+    `largest_moment` along them (`wrench_scale`)."""
+    return h * wrench_scale(stiffness_range(rod)[0], jnp.linalg.norm(N), largest_moment) <= PIECE_RESOLUTION

@@ -116,12 +116,14 @@ def _rod_solve(solver, controller, dt0, *, ours: bool, max_steps=4096):
 
 def test_the_rods_steps_end_and_counts_are_diffraxs():
     """The geometric solvers, adaptive (first step chosen by the controller, a largest step)
-    and constant steps, saved at the end only, and a solve cut short by `max_steps`: the
+    and constant steps, saved at the end only, without a cap on the steps (`max_steps=None`)
+    and cut short by `max_steps`: the
     same counts and result codes as `diffrax.diffeqsolve` and the same states."""
     cases = [
         (hr.MuntheKaasRK(diffrax.Dopri8()), diffrax.PIDController(rtol=1e-9, atol=1e-11, dtmax=0.05), None, 4096),
         (hr.CommutatorFreeRK4(), diffrax.PIDController(rtol=1e-6, atol=1e-8), None, 4096),
         (hr.CommutatorFreeRK4(), diffrax.ConstantStepSize(), 1 / 37, 4096),
+        (hr.MuntheKaasRK(diffrax.Dopri8()), diffrax.PIDController(rtol=1e-9, atol=1e-11), None, None),
         (hr.MuntheKaasRK(diffrax.Dopri8()), diffrax.PIDController(rtol=1e-12, atol=1e-12), None, 5),
     ]
     for solver, controller, dt0, max_steps in cases:

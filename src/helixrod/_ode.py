@@ -47,12 +47,13 @@ import jax.numpy as jnp
 import numpy as np
 
 
-def solve_ode(terms, solver, t0, t1, dt0, y0, *, ts, args, stepsize_controller, adjoint, max_steps: int):
+def solve_ode(terms, solver, t0, t1, dt0, y0, *, ts, args, stepsize_controller, adjoint, max_steps: int | None):
     """The solve of `diffrax.diffeqsolve(terms, solver, t0, t1, dt0, y0, args=args, ...,
     throw=False)` from the constant times `t0 < t1`, saved at the increasing points `ts` in
     `[t0, t1]` (unchecked; `None`: at `t1` only): `(saved values, result, stats)`, the values
     with a leading axis (one row at `t1` only), `result` a `diffrax.RESULTS`, `stats` the
-    step counts `num_steps`, `num_accepted_steps`, `num_rejected_steps`.  With
+    step counts `num_steps`, `num_accepted_steps`, `num_rejected_steps` (`max_steps=None`: no
+    cap on the steps).  With
     `adjoint=diffrax.ForwardMode()` and an explicit solver the loop is `_forward_loop`
     (module docstring), otherwise diffrax's."""
     if not _constant_time(t0, "t0") < _constant_time(t1, "t1"):
@@ -118,7 +119,8 @@ def _forward_loop(terms, solver, t0, t1, dt0, y0, ts, args, controller, max_step
 
     def unfinished(state):
         _, tprev, _, _, _, result, steps, *_ = state
-        return (tprev < t1) & (result == RESULTS.successful) & (steps < max_steps)
+        going = (tprev < t1) & (result == RESULTS.successful)
+        return going if max_steps is None else going & (steps < max_steps)
 
     def step(state):
         y, tprev, tnext, solver_state, controller_state, result, steps, accepted, rejected, index, saved = state

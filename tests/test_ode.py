@@ -144,3 +144,23 @@ def test_times_must_be_constant_and_increasing():
         solve_ode(term, diffrax.Dopri5(), 1.0, 0.0, None, Y0, **kwargs)
     with pytest.raises(ValueError, match="t1 must be a constant"):
         jax.jit(lambda t1: solve_ode(term, diffrax.Dopri5(), 0.0, t1, None, Y0, **kwargs)[0])(1.0)
+
+
+def test_steps_that_land_on_the_saved_points_as_diffraxs():
+    """A controller that makes the steps land on the saved points (`step_ts`, what
+    `solve_static(..., interpolate=False)` asks for): the same steps and values as diffrax's
+    loop with `SaveAt(ts)`; and through `solve_static`, the saved values of the
+    interpolated solve to its tolerance, with a step ending at each point."""
+    ts = jnp.linspace(0.0, 6.0, 13)
+    controller = diffrax.PIDController(rtol=1e-8, atol=1e-8, step_ts=ts)
+    kwargs = dict(args=3.0, stepsize_controller=controller, max_steps=4096, adjoint=diffrax.ForwardMode())
+    ours, result, stats = jax.jit(lambda: solve_ode(diffrax.ODETerm(van_der_pol), diffrax.Dopri5(), 0.0, 6.0, 0.01, Y0, ts=ts, **kwargs))()
+    sol = jax.jit(lambda: diffrax.diffeqsolve(diffrax.ODETerm(van_der_pol), diffrax.Dopri5(), 0.0, 6.0, 0.01, Y0,
+                                              saveat=diffrax.SaveAt(ts=ts), throw=False, **kwargs))()
+    assert result == diffrax.RESULTS.successful and int(stats["num_steps"]) == int(sol.stats["num_steps"])
+    assert tree_allclose(ours, sol.ys, rtol=1e-12)
+    s = jnp.linspace(0.0, 6.0, 9)
+    landed = hr.solve_static(KIRCHHOFF_ROD, N0, M0, 6.0, saveat=s, interpolate=False)
+    interpolated = hr.solve_static(KIRCHHOFF_ROD, N0, M0, 6.0, saveat=s)
+    assert int(landed.num_steps) > int(interpolated.num_steps)
+    np.testing.assert_allclose(landed.m, interpolated.m, atol=1e-9)

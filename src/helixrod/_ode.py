@@ -30,10 +30,11 @@ events, the state saved at the end or at increasing points from each accepted st
 interpolation (`interpolation_cls` of the solver), as diffrax saves them.  The steps, the
 accepted and rejected counts and the result codes are diffrax's, and so are the saved values,
 bitwise in most programs, to round-off (~1e-12 after 1400 steps) where XLA fuses the
-arithmetic of the two programs differently (`tests/test_ode.py`).  Each saved point is one row of one buffer (`_flat`): one update a
-point and one fill before the solve instead of one a leaf of the state (with the rod's four
-leaves that cut the fixed cost of saving by half: a planar elastica of 24 steps, one core,
-66 -> 60 us with one saved point, against 55 us saving the end only).  Reverse-mode adjoints
+arithmetic of the two programs differently (`tests/test_ode.py`).  Each saved point is one
+row of one buffer (`_flat`): one update a point and one fill before the solve instead of one
+a leaf of the state (with the rod's four leaves that cut the fixed cost of saving by half: a
+planar elastica of 24 steps, one core, 66 -> 60 us with one saved point, against 55 us
+saving the end only).  Reverse-mode adjoints
 (which differentiate diffrax's checkpointed loop) and implicit solvers (whose root finder
 diffrax configures from the controller) go to `diffrax.diffeqsolve`.
 """
@@ -53,9 +54,8 @@ def solve_ode(terms, solver, t0, t1, dt0, y0, *, ts, args, stepsize_controller, 
     `[t0, t1]` (unchecked; `None`: at `t1` only): `(saved values, result, stats)`, the values
     with a leading axis (one row at `t1` only), `result` a `diffrax.RESULTS`, `stats` the
     step counts `num_steps`, `num_accepted_steps`, `num_rejected_steps` (`max_steps=None`: no
-    cap on the steps).  With
-    `adjoint=diffrax.ForwardMode()` and an explicit solver the loop is `_forward_loop`
-    (module docstring), otherwise diffrax's."""
+    cap on the steps).  With `adjoint=diffrax.ForwardMode()` and an explicit solver the loop
+    is `_forward_loop` (module docstring), otherwise diffrax's."""
     if not _constant_time(t0, "t0") < _constant_time(t1, "t1"):
         raise ValueError(f"solve_ode integrates forward from t0 to t1, got t0={t0}, t1={t1}")
     if not isinstance(adjoint, diffrax.ForwardMode) or isinstance(solver, diffrax.AbstractImplicitSolver):

@@ -21,6 +21,8 @@ Closed forms (straight rod, bending stiffness B, length L, clamped at s = 0):
 
 import warnings
 
+import jax
+import jax.numpy as jnp
 import mpmath
 import numpy as np
 import pytest
@@ -29,6 +31,8 @@ import scipy.optimize
 import scipy.special
 
 import helixrod
+from helixrod._bvp._stability import piece_transfer
+from helixrod._bvp._variations import FEWEST_STEPS_PER_RADIAN, STEPS_PER_RADIAN, PieceVariations, steps_per_radian
 from discrete_rod import centreline, equilibrium, hessian_eigenvalues
 
 L = 1.0
@@ -118,6 +122,44 @@ def test_greenhill_twisted_shaft():
     assert critical(lambda M: margin(rod, end(M)), 8.0, 10.0) == pytest.approx(theta_c, rel=1e-6)
     above = helixrod.solve_boundary_value(rod, L, end=end(1.05 * theta_c), guess="helix")
     assert int(above.instability_index) == 2
+
+
+def test_the_test_is_as_accurate_as_the_solve_asks():
+    """The stability test's Jacobi fields take fewer steps at a looser ODE tolerance
+    (`_variations.steps_per_radian`): Greenhill's critical twist from the margin's zero at
+    `ode_rtol` 1e-5 is still within that tolerance of the closed form (and of the critical
+    twist at the default tolerance), with 4-12 steps per radian from the loosest to the
+    tightest tolerance, monotone."""
+    rod = helixrod.Rod(1.0, 1.0, 4.0)
+    theta_c = 2 * scipy.optimize.brentq(lambda x: np.tan(x) - x, 4.0, 4.6)
+    end = lambda M: helixrod.Clamped((0.0, 0.0, L), helixrod.so3_exp(np.array([0.0, 0.0, M * L / 4.0])))  # noqa: E731
+    loose = dict(atol=1e-5, ode_rtol=1e-5, ode_atol=1e-5)
+    assert critical(lambda M: margin(rod, end(M), **loose), 8.0, 10.0) == pytest.approx(theta_c, rel=1e-5)
+    per_radian = np.asarray(steps_per_radian(np.logspace(-12, 0, 13)))
+    assert per_radian[0] == STEPS_PER_RADIAN and per_radian[-1] == FEWEST_STEPS_PER_RADIAN == 4
+    assert np.all(np.diff(per_radian) <= 0) and 4 < float(steps_per_radian(1e-6)) < STEPS_PER_RADIAN
+
+
+def test_piece_transfer_is_the_linearised_map():
+    """`piece_transfer`, written out, against `jax.jacfwd` of the linear map it stands for
+    (the node and wrench variations at a piece's start to those at its end), at a general
+    frame, wrench and piece."""
+    rng = np.random.default_rng(3)
+    frame = np.asarray(helixrod.so3_exp(rng.normal(size=3)))
+    N, M_a, compliance = rng.normal(size=3), rng.normal(size=3), 1e-3
+    piece = PieceVariations(rng.normal(size=3), np.eye(3), rng.normal(size=3), rng.normal(size=(3, 6)), rng.normal(size=(3, 6)))
+    r, dp, drot = frame @ piece.position, frame @ piece.d_position, frame @ piece.d_rotation
+
+    def linear(v):
+        dx, dth, dN, dM = v[:3], v[3:6], v[6:9], v[9:]
+        dw = jnp.concatenate([frame.T @ (dN + jnp.cross(N, dth)), frame.T @ (dM + jnp.cross(M_a, dth))])
+        dx_b = dx + jnp.cross(dth, r) + dp @ dw + compliance * dN
+        dth_b = dth + drot @ dw
+        dM_b = dM - jnp.cross(dx_b - dx, N) - jnp.cross(r, dN)
+        return jnp.concatenate([dx_b, dth_b, dN, dM_b])
+
+    expected = jax.jacfwd(linear)(jnp.zeros(12))
+    np.testing.assert_allclose(piece_transfer(frame, N, M_a, piece, compliance), expected, rtol=0, atol=1e-14)
 
 
 @pytest.mark.heavy
@@ -268,8 +310,6 @@ def test_condensed_is_a_schur_complement_that_keeps_the_inertia():
     complement of the node's block in the assembled (a, c, d) matrix, and Haynsworth's
     inertia additivity -- the negative eigenvalues of the whole equal those of the node's
     block plus those of the result -- on random symmetric blocks of mixed inertia."""
-    import jax.numpy as jnp
-
     from helixrod._bvp._stability import condensed
 
     rng = np.random.default_rng(7)

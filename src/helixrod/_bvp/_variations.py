@@ -33,6 +33,27 @@ STEPS_PER_RADIAN = 12
 #: The fewest steps of a piece.
 MIN_STEPS = 4
 
+#: The relative error of a critical load found by the stability test at `STEPS_PER_RADIAN`
+#: (Greenhill's shaft above); it falls as the fourth power of the steps (x 4.7 at 8).
+ERROR_AT_STEPS_PER_RADIAN = 2.8e-7
+
+#: The fewest steps per radian of `steps_per_radian` (the root finder's are as coarse).
+FEWEST_STEPS_PER_RADIAN = 4
+
+
+def steps_per_radian(rtol) -> Array:
+    """Steps per radian of Jacobi fields whose error is at most half the relative ODE
+    tolerance `rtol` of the solution they vary: `STEPS_PER_RADIAN` (error 2.8e-7) for
+    tolerances up to twice that error, fewer for looser ones, as RK4's error $\\propto$
+    steps$^{-4}$, down to `FEWEST_STEPS_PER_RADIAN` (error ~2e-5).  A test need not be more
+    accurate than the state it tests.  Measured: Greenhill's critical twist 2.8e-7 off at
+    `rtol` 1e-10 and 1e-7, 6.3e-7 at 1e-6 (fewer steps), 3.4e-6 at 1e-5 and looser (its
+    pieces' `MIN_STEPS`); the stability test of the clamped spring of
+    `benchmarks/bench_finite.py` at `rtol` 1e-4 0.38 ms instead of 0.53 ms, its margin the
+    same to 1.3e-8."""
+    scale = (2.0 * ERROR_AT_STEPS_PER_RADIAN / jnp.asarray(rtol)) ** 0.25
+    return jnp.clip(STEPS_PER_RADIAN * scale, FEWEST_STEPS_PER_RADIAN, STEPS_PER_RADIAN)
+
 
 def variation_steps(rod, n0, m0, length, max_steps: int, per_radian: float = STEPS_PER_RADIAN) -> Int[Array, ""]:
     """The number of equal steps of `piece_variations` for a piece of length `length` with

@@ -127,9 +127,8 @@ def test_greenhill_twisted_shaft():
 def test_the_test_is_as_accurate_as_the_solve_asks():
     """The stability test's Jacobi fields take fewer steps at a looser ODE tolerance
     (`_variations.steps_per_radian`): Greenhill's critical twist from the margin's zero at
-    `ode_rtol` 1e-5 is still within that tolerance of the closed form (and of the critical
-    twist at the default tolerance), with 4-12 steps per radian from the loosest to the
-    tightest tolerance, monotone."""
+    `ode_rtol` 1e-5 is still within that tolerance of the closed form, with 4-12 steps per
+    radian from the loosest to the tightest tolerance, monotone."""
     rod = helixrod.Rod(1.0, 1.0, 4.0)
     theta_c = 2 * scipy.optimize.brentq(lambda x: np.tan(x) - x, 4.0, 4.6)
     end = lambda M: helixrod.Clamped((0.0, 0.0, L), helixrod.so3_exp(np.array([0.0, 0.0, M * L / 4.0])))  # noqa: E731

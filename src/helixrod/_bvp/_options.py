@@ -67,7 +67,7 @@ class BoundaryValueOptions(eqx.Module):
     - `ode_rtol`, `ode_atol`, `solver` (`CommutatorFreeRK4()` or `MuntheKaasRK(...)`: the
       shooting equations rely on their exact conservation of the lab wrench),
       `max_ode_steps`: the integration of each piece; the stability test's Jacobi fields
-      follow `ode_rtol` too (fewer steps where it is looser than ~1e-7).
+      follow `ode_rtol` too (fewer steps where it is looser than ~6e-7).
     - `stability_pieces`: pieces of the stability test of the solution (`_stability.py`;
       rounded up to a multiple of `segments`; 0: no stability test, `instability_index`
       -1); each piece must be short against the wrench, and `solve_boundary_value` doubles

@@ -155,8 +155,9 @@ def ode_tolerances(options: BoundaryValueOptions, dtype):
     return jnp.stack([options.ode_rtol, options.ode_atol]).astype(dtype)
 
 
-# Compiled with the full options, not to run once: it runs at every solve, 36 against 66 us
-# (its compilation, 0.53 against 0.31 s, runs beside the solve's at a first call).
+# Compiled with the full options, not to run once: it runs at every eager solve, 61-65
+# against 91-99 us (its compilation, 0.62 against 0.30 s, runs beside the solve's at a
+# first call: that call's time within the noise, 3.97-4.63 against 3.87-4.73 s).
 @jit(static_argnames="guess_kind")
 def as_warm_start(rod, length, start: Clamped, end: EndCondition, guess, options: BoundaryValueOptions, guess_kind="helix"):
     """`guess` (as `solve`) as a `WarmStart` (`warm_start_of`), in a program of its own: an

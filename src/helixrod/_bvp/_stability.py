@@ -211,7 +211,8 @@ def stability(rod, length, end: EndCondition, N, M0, xs, frames, options: Bounda
     """(instability_index, stability_margin, unstable_direction, rotation, chained) of the
     equilibrium with lab force `N`, lab moment `M0` at the start and shooting nodes `xs`
     `(k, 3)`, `frames` `(k, 3, 3)`, on `options.stability_pieces` pieces (rounded up to a
-    multiple of k).  Each piece is integrated as a chain of as many equal sub-pieces as its
+    multiple of k), their Jacobi fields as accurate as `options.ode_rtol` asks
+    (`steps_per_radian`).  Each piece is integrated as a chain of as many equal sub-pieces as its
     wrench needs (`sub_pieces_needed`, at most `MAX_SUB_PIECES`), whose inner nodes are
     eliminated as it goes (`condensed`): one program resolves every load.  Index -1 and NaN
     margin where the stability is not defined (a `Loaded` end with an applied moment), a

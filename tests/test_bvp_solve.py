@@ -722,3 +722,27 @@ def test_automatic_segments_follow_the_guess_growth_and_need_concrete_inputs():
         jax.jit(lambda L: hr.solve_boundary_value(SPRING, L, end=end, segments="auto").force)(length)
     with pytest.raises(ValueError, match="'auto'"):
         hr.solve_boundary_value(SPRING, length, end=end, segments="many")
+
+
+@pytest.mark.heavy  # a 5-segment continuation program of its own: ~10 s to compile
+def test_a_stretched_spring_falls_back_to_more_segments():
+    """The README's spring of 3 turns pulled by F = 1 (tweezer end, turned 0.5 rad past its
+    unloaded end): single shooting from the bulk guess lands on an unstable state, and so do
+    its pushes and its homotopy on one piece; the defaults then continue on the pieces the
+    guess's spatial growth asks for (`needed_segments`, 5) to a stable state that meets the
+    end's frame, force and whole turns."""
+    from helixrod._bvp._solve import needed_segments
+
+    length = 3 * 2 * np.pi / np.hypot(1.0, 0.3)
+    turned = float(hr.unloaded_observables(SPRING, length)[1]) + 0.5
+    start, end = hr.axial_ends(SPRING, length, force=1.0, rotation=turned)
+    direct = hr.solve_boundary_value(SPRING, length, start=start, end=end, guess="helix", throw=False)
+    assert bool(direct.ok) and int(direct.instability_index) > 0
+    sol = hr.solve_boundary_value(SPRING, length, start=start, end=end)
+    needed = needed_segments(SPRING, length, start.condition(), end.condition(), None, "helix")[0]
+    assert sol.segments == needed == 5 and sol.continuation > 0
+    assert bool(sol.ok) and bool(sol.stable) and int(sol.instability_index) == 0
+    np.testing.assert_allclose(sol.force, [0.0, 0.0, 1.0], atol=1e-8)
+    np.testing.assert_allclose(sol.end_frame, end.frame, atol=1e-8)
+    np.testing.assert_allclose(float(sol.rotation), turned, atol=1e-8)
+    assert float(direct.end_position[2]) < 1.0 < 14.0 < float(sol.end_position[2]) < length

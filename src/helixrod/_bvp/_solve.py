@@ -723,11 +723,12 @@ def _physical(sol, chained, rod, length, start, end, default_guess, saveat, opti
     along its most unstable direction; when that fails too, or the direct solve did: for an
     intrinsically straight rod between clamps brought closer than its length, the first
     buckled mode (`buckled_guess`), then homotopy continuation from the unloaded rod
-    (`FALLBACK_CONTINUATION`).  Where the end knows its total rotation (`rotation`, e.g.
-    from `axial_ends`), a state is accepted only if it holds those whole turns (its
-    `rotation`, as the stability test counts it); a converged solution that does not is
-    returned with result `other_whole_turns`.  Returns the solution and whether it
-    succeeded."""
+    (`FALLBACK_CONTINUATION`), and last, where the guess's spatial growth asks for more
+    shooting pieces (`needed_segments`), that continuation on that many pieces.  Where the
+    end knows its total rotation (`rotation`, e.g. from `axial_ends`), a state is accepted
+    only if it holds those whole turns (its `rotation`, as the stability test counts it); a
+    converged solution that does not is returned with result `other_whole_turns`.  Returns
+    the solution and whether it succeeded."""
     asked = None
 
     def verdict(trial, chained=None) -> tuple[tuple[bool, int, bool], bool | None]:
@@ -813,4 +814,17 @@ def _physical(sol, chained, rod, length, start, end, default_guess, saveat, opti
             sol, judged = trial, trial_judged
         if acceptable(judged):
             break
+    # Last, where the guess's spatial growth asks for more shooting pieces than these
+    # (`needed_segments`, as `segments="auto"`): errors of the start wrench grow like
+    # exp(lambda L) along one piece, and single shooting of a stretched spring lands on an
+    # unstable state or none.  Continuation from the unloaded rod on that many pieces (their
+    # direct solve from the guess found other whole turns on the spring of
+    # `tests/test_bvp_solve.py`).
+    needed = 1 if acceptable(judged) else needed_segments(rod, length, start, end, None, guess_kind)[0]
+    if needed > options.segments:
+        for steps in FALLBACK_CONTINUATION:
+            trial, trial_judged = solved(None, dataclasses.replace(options, segments=needed, continuation=steps))
+            if acceptable(trial_judged):
+                sol, judged = trial, trial_judged
+                break
     return flagged(sol, judged)

@@ -550,3 +550,25 @@ def test_a_straight_rod_twisted_in_either_mode():
         assert bool(jnp.all(curve.ok)), mode
         np.testing.assert_allclose(curve.moment, 0.8 * rotations, rtol=1e-9)
         np.testing.assert_allclose(curve.bulk_moment, 0.8 * rotations, rtol=1e-12)
+
+
+@pytest.mark.heavy  # 5- and 4-segment curve programs of their own: ~15 s to compile
+def test_a_curve_on_automatic_segments_reaches_a_stretched_spring():
+    """`segments="auto"` for a curve: the most shooting pieces its points' guesses ask for
+    (`needed_segments`). The README's spring of 3 turns, end turned 0.5 rad past its
+    unloaded end, pulled to F = 1 (single shooting fails from F = 0.6 on): every point
+    stable on 5 pieces, the same curve as on 4 given ones; a traced input or another word
+    is a clear error."""
+    length = 3 * 2 * np.pi / np.hypot(1.0, 0.3)
+    turned = float(hr.unloaded_observables(SPRING, length)[1]) + 0.5
+    forces = jnp.linspace(0.05, 1.0, 20)
+    auto = hr.force_extension(SPRING, length, forces, rotation=turned, segments="auto")
+    given = hr.force_extension(SPRING, length, forces, rotation=turned, segments=4)
+    assert auto.solutions.segments == 5 and given.solutions.segments == 4
+    assert bool(jnp.all(auto.ok)) and np.all(np.asarray(auto.instability_index) == 0)
+    np.testing.assert_allclose(auto.extension, given.extension, atol=1e-8)
+    assert 14.0 < float(auto.extension[-1]) < length
+    with pytest.raises(ValueError, match="concrete inputs"):
+        jax.jit(lambda f: hr.force_extension(SPRING, length, f, rotation=turned, segments="auto").extension)(forces)
+    with pytest.raises(ValueError, match="'auto'"):
+        hr.force_extension(SPRING, length, forces, rotation=turned, segments="many")

@@ -49,6 +49,7 @@ from ._shooting import WarmStart, default_warm_start
 from ._solve import (
     BoundaryValueSolution,
     fit_guess,
+    needed_segments,
     parse_guess,
     resolved_stability,
     solve,
@@ -401,6 +402,13 @@ _ends_of_points = jit(_point_ends, run_once=True)
 _end_of_point = jit(axial_end_condition, run_once=True)
 
 
+def _segments_along(rod, length, kind, values) -> int:
+    """`segments="auto"` for a curve: the most shooting pieces any of its points' default
+    guesses asks for (`needed_segments`: its spatial growth), on the host."""
+    start = unloaded_clamp(rod)
+    return max(needed_segments(rod, length, start, _end_of_point(rod, length, kind, v), None, "helix")[0] for v in values)
+
+
 def _point(tree, i):
     """Point `i` of a batch of solutions (or ends) held on the host (NumPy: no program
     compiled per field, as JAX's slicing would)."""
@@ -551,7 +559,7 @@ def axial_response(
     bulk: bool = True,
     guess: BoundaryValueSolution | tuple[ArrayLike, ArrayLike] | None = None,
     options: BoundaryValueOptions | None = None,
-    segments: int | None = None,
+    segments: int | str | None = None,
     method: str | None = None,
     atol: float | None = None,
     max_steps: int | None = None,
@@ -578,7 +586,10 @@ def axial_response(
     `BoundaryValueSolution` (e.g. a buckled state found by `solve_boundary_value` or
     `follow_branch`) or a pair `(n0, m0)` of start wrenches (director frame): the first
     point's start in continuation mode (the default guess where that fails), every point's
-    in independent mode.  `options` and the keywords after it: as `solve_boundary_value`.
+    in independent mode.  `options` and the keywords after it: as `solve_boundary_value`;
+    `segments="auto"` takes the most shooting pieces any point's default guess asks for
+    (`needed_segments`, its spatial growth; eager calls only): a stretched spring that single
+    shooting loses (the README's, 3 turns, from F = 0.6 on) is solved to F = 1 on 5.
     `throw`: raise `SolverError` if any point fails (default `False`: failed points have
     `ok = False` and NaN observables).  jit/vmap safe.  Derivatives: forward mode
     (`jax.jacfwd`, `jvp`) in either mode; reverse mode (`jax.grad`, `jacrev`, with
@@ -603,17 +614,20 @@ def axial_response(
         raise ValueError(f"{owner}: {error}") from None
     values, swept = _point_values(name, given, owner)
     return _response(
-        rod, length, name, values, swept, mode=mode, rotation_hint=rotation_hint, bulk=bulk, owner=owner, guess=guess,
+        rod, length, name, values, swept, mode=mode, rotation_hint=rotation_hint, bulk=bulk, owner=owner, guess=guess, segments=segments,
         throw=throw, progress=progress, options=with_settings(
-            options, segments=segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
+            options, segments=None if isinstance(segments, str) else segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
             ode_atol=ode_atol, adjoint=adjoint,
         ),
     )
 
 
 def _response(
-    rod, length, name, values, swept, *, mode, options, owner, throw, progress, rotation_hint=None, bulk=True, guess=None
+    rod, length, name, values, swept, *, mode, options, owner, throw, progress, rotation_hint=None, bulk=True, guess=None,
+    segments=None,
 ):
+    if isinstance(segments, str) and segments != "auto":
+        raise ValueError(f"{owner}: segments must be an integer >= 1 or 'auto', got {segments!r}")
     check_choice(mode, MODES, "mode", owner)
     progress = check_progress(progress, owner)
     check_one_rod(rod, owner)
@@ -632,6 +646,12 @@ def _response(
         hints = jnp.broadcast_to(hint, values.shape[:1])
     kind = jnp.asarray(AXIAL_CONTROLS[name].kind, jnp.int32)
     concrete = is_concrete(rod, length, values, hints, guess, options)
+    if segments == "auto":
+        if not concrete:
+            raise ValueError(f"{owner}: segments='auto' needs concrete inputs (not under jax.jit or vmap)")
+        options = dataclasses.replace(options, segments=_segments_along(rod, length, kind, values))
+        if guess is not None:
+            guess = fit_guess(guess, options.segments, unloaded_clamp(rod))
     if not concrete and progress not in (None, False):
         raise ValueError(
             f"{owner}: progress= reports between host-side batches of points and needs concrete inputs, "
@@ -770,7 +790,7 @@ def force_extension(
     mode: str = "continuation",
     guess: BoundaryValueSolution | tuple[ArrayLike, ArrayLike] | None = None,
     options: BoundaryValueOptions | None = None,
-    segments: int | None = None,
+    segments: int | str | None = None,
     method: str | None = None,
     atol: float | None = None,
     max_steps: int | None = None,
@@ -814,8 +834,8 @@ def force_extension(
     name, given = axial_controls(force=forces, **held)
     values, _ = _point_values(name, given, owner)
     return _response(
-        rod, length, name, values, "force", mode=mode, owner=owner, throw=throw, progress=progress, guess=guess, options=with_settings(
-            options, segments=segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
+        rod, length, name, values, "force", mode=mode, segments=segments, owner=owner, throw=throw, progress=progress, guess=guess, options=with_settings(
+            options, segments=None if isinstance(segments, str) else segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
             ode_atol=ode_atol, adjoint=adjoint,
         ),
     )
@@ -831,7 +851,7 @@ def rotation_response(
     mode: str = "continuation",
     guess: BoundaryValueSolution | tuple[ArrayLike, ArrayLike] | None = None,
     options: BoundaryValueOptions | None = None,
-    segments: int | None = None,
+    segments: int | str | None = None,
     method: str | None = None,
     atol: float | None = None,
     max_steps: int | None = None,
@@ -861,8 +881,8 @@ def rotation_response(
     name, given = axial_controls(rotation=rotations, **held)
     values, _ = _point_values(name, given, owner)
     return _response(
-        rod, length, name, values, "rotation", mode=mode, owner=owner, throw=throw, progress=progress, guess=guess, options=with_settings(
-            options, segments=segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
+        rod, length, name, values, "rotation", mode=mode, segments=segments, owner=owner, throw=throw, progress=progress, guess=guess, options=with_settings(
+            options, segments=None if isinstance(segments, str) else segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
             ode_atol=ode_atol, adjoint=adjoint,
         ),
     )

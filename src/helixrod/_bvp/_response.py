@@ -48,6 +48,7 @@ from ._rotation import holds_turns
 from ._shooting import WarmStart, default_warm_start
 from ._solve import (
     BoundaryValueSolution,
+    automatic_segments,
     fit_guess,
     needed_segments,
     parse_guess,
@@ -608,15 +609,16 @@ def axial_response(
     `None` and `False` are allowed.
     """
     owner = "axial_response"
+    auto = automatic_segments(segments, owner)
     try:
         name, given = axial_controls(force=force, moment=moment, extension=extension, rotation=rotation)
     except ValueError as error:
         raise ValueError(f"{owner}: {error}") from None
     values, swept = _point_values(name, given, owner)
     return _response(
-        rod, length, name, values, swept, mode=mode, rotation_hint=rotation_hint, bulk=bulk, owner=owner, guess=guess, segments=segments,
+        rod, length, name, values, swept, mode=mode, rotation_hint=rotation_hint, bulk=bulk, owner=owner, guess=guess, auto_segments=auto,
         throw=throw, progress=progress, options=with_settings(
-            options, segments=None if isinstance(segments, str) else segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
+            options, segments=None if auto else segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
             ode_atol=ode_atol, adjoint=adjoint,
         ),
     )
@@ -624,10 +626,8 @@ def axial_response(
 
 def _response(
     rod, length, name, values, swept, *, mode, options, owner, throw, progress, rotation_hint=None, bulk=True, guess=None,
-    segments=None,
+    auto_segments=False,
 ):
-    if isinstance(segments, str) and segments != "auto":
-        raise ValueError(f"{owner}: segments must be an integer >= 1 or 'auto', got {segments!r}")
     check_choice(mode, MODES, "mode", owner)
     progress = check_progress(progress, owner)
     check_one_rod(rod, owner)
@@ -646,7 +646,7 @@ def _response(
         hints = jnp.broadcast_to(hint, values.shape[:1])
     kind = jnp.asarray(AXIAL_CONTROLS[name].kind, jnp.int32)
     concrete = is_concrete(rod, length, values, hints, guess, options)
-    if segments == "auto":
+    if auto_segments:
         if not concrete:
             raise ValueError(f"{owner}: segments='auto' needs concrete inputs (not under jax.jit or vmap)")
         options = dataclasses.replace(options, segments=_segments_along(rod, length, kind, values))
@@ -824,6 +824,7 @@ def force_extension(
     ```
     """
     owner = "force_extension"
+    auto = automatic_segments(segments, owner)
     if moment is not None and rotation is not None:
         raise ValueError(f"{owner}: give moment= or rotation=, not both")
     forces = _swept_values(forces, owner, "forces")
@@ -834,8 +835,8 @@ def force_extension(
     name, given = axial_controls(force=forces, **held)
     values, _ = _point_values(name, given, owner)
     return _response(
-        rod, length, name, values, "force", mode=mode, segments=segments, owner=owner, throw=throw, progress=progress, guess=guess, options=with_settings(
-            options, segments=None if isinstance(segments, str) else segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
+        rod, length, name, values, "force", mode=mode, auto_segments=auto, owner=owner, throw=throw, progress=progress, guess=guess, options=with_settings(
+            options, segments=None if auto else segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
             ode_atol=ode_atol, adjoint=adjoint,
         ),
     )
@@ -871,6 +872,7 @@ def rotation_response(
     rotation counts the whole turns of the end.
     """
     owner = "rotation_response"
+    auto = automatic_segments(segments, owner)
     if (force is None) == (extension is None):
         raise ValueError(f"{owner}: give exactly one of force= or extension=")
     rotations = _swept_values(rotations, owner, "rotations")
@@ -881,8 +883,8 @@ def rotation_response(
     name, given = axial_controls(rotation=rotations, **held)
     values, _ = _point_values(name, given, owner)
     return _response(
-        rod, length, name, values, "rotation", mode=mode, segments=segments, owner=owner, throw=throw, progress=progress, guess=guess, options=with_settings(
-            options, segments=None if isinstance(segments, str) else segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
+        rod, length, name, values, "rotation", mode=mode, auto_segments=auto, owner=owner, throw=throw, progress=progress, guess=guess, options=with_settings(
+            options, segments=None if auto else segments, method=method, atol=atol, max_steps=max_steps, ode_rtol=ode_rtol,
             ode_atol=ode_atol, adjoint=adjoint,
         ),
     )

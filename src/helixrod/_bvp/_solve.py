@@ -480,9 +480,7 @@ def solve_boundary_value(
     ```
     """
     owner = "solve_boundary_value"
-    auto = isinstance(segments, str)
-    if auto and segments != "auto":
-        raise ValueError(f"{owner}: segments must be an integer >= 1 or 'auto', got {segments!r}")
+    auto = automatic_segments(segments, owner)
     options = with_settings(
         options, segments=None if auto else segments, continuation=continuation, method=method, atol=atol, max_steps=max_steps,
         ode_rtol=ode_rtol, ode_atol=ode_atol, solver=solver, max_ode_steps=max_ode_steps, adjoint=adjoint,
@@ -572,6 +570,17 @@ GROWTH_PER_SEGMENT = 3.0
 def _guess_wrench(rod, length, start, end, guess_kind):
     warm = default_warm_start(rod, length, start, end, 1, guess_kind)
     return start.frame.T @ warm.force, start.frame.T @ warm.moment0
+
+
+def automatic_segments(segments, owner: str) -> bool:
+    """Whether an entry point's `segments` keyword asks for `"auto"` (`needed_segments`);
+    `ValueError` naming `owner` for another word (an integer or None goes on to
+    `with_settings`)."""
+    if not isinstance(segments, str):
+        return False
+    if segments != "auto":
+        raise ValueError(f"{owner}: segments must be an integer >= 1 or 'auto', got {segments!r}")
+    return True
 
 
 def needed_segments(rod, length, start, end, guess, guess_kind):

@@ -124,11 +124,11 @@ def piece_transfer(frame_a, N, M_a, variations: PieceVariations, compliance) -> 
     # D_a^T (dN + N x dtheta, dM + M_a x dtheta).  Written out, not `jax.jacfwd` of the
     # linear map: the same matrix to round-off, 10-25 us less of a 16-piece test.
     wrench = jnp.concatenate([row(zero, frame_a.T @ hat(N), frame_a.T, zero), row(zero, frame_a.T @ hat(M_a), zero, frame_a.T)])
-    dx_b = row(eye, -hat(r), compliance * eye, zero) + dp @ wrench
+    moved = row(zero, -hat(r), compliance * eye, zero) + dp @ wrench  # dx_b - dx
     dth_b = row(zero, eye, zero, zero) + drot @ wrench
     # The moment about the moved end: dM - (dx_b - dx) x N - r x dN.
-    dM_b = row(zero, zero, -hat(r), eye) + hat(N) @ (dx_b - row(eye, zero, zero, zero))
-    return jnp.concatenate([dx_b, dth_b, row(zero, zero, eye, zero), dM_b])
+    dM_b = row(zero, zero, -hat(r), eye) + hat(N) @ moved
+    return jnp.concatenate([row(eye, zero, zero, zero) + moved, dth_b, row(zero, zero, eye, zero), dM_b])
 
 
 def piece_hessian(T) -> Float[Array, "12 12"]:
